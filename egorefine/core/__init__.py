@@ -1,0 +1,31 @@
+"""Checks, typed errors and numeric helpers shared by every stage."""
+
+from .check import (
+    check_choice,
+    check_finite,
+    check_float,
+    check_image,
+    check_positive,
+    check_same_device,
+    check_shape,
+)
+from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
+from .numerics import eps_like, safe_div
+
+__all__ = [
+    "check_choice",
+    "check_finite",
+    "check_float",
+    "check_image",
+    "check_positive",
+    "check_same_device",
+    "check_shape",
+    "DeviceError",
+    "DTypeError",
+    "EgorefineError",
+    "ShapeError",
+    "StateError",
+    "ValueRangeError",
+    "eps_like",
+    "safe_div",
+]

@@ -1,0 +1,144 @@
+"""Rigid motions: SE(3) exponential/logarithm and the paper's ego-motion twist.
+
+Two parameterisations of a 6-vector appear in egorefine:
+
+* ``se3_exp`` / ``se3_log``: the standard exponential map of SE(3), ``xi = (rho, phi)``
+  with translation part first (kornia's :class:`~kornia.geometry.liegroup.Se3` order). We
+  write them out rather than call ``Se3`` because its matrices carry an autograd graph
+  even for inputs that need no gradient, and near zero rotation we want Taylor series
+  for every coefficient (finite values and gradients at exactly zero).
+* The paper's ego-motion ``twist = (U, V, W, alpha, beta, gamma)``: the rig's translation
+  ``T`` and rotation ``omega`` over one frame step. A static point then moves, relative to
+  the rig, by ``-T - omega x P`` (PAPER.md eq. 1). We make that exact for a finite step by
+  defining the pose of the new camera in the old one as ``se3_exp(twist)``, so that
+
+      camera_t_T_camera_{t-1} = se3_exp(twist)^-1 = se3_exp(-twist),
+
+  whose first-order action on a point is ``P - T - omega x P``, equation (1).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..core import check_float, check_shape
+
+__all__ = [
+    "se3_exp",
+    "se3_log",
+    "se3_inverse",
+    "transform_points",
+    "twist_to_motion",
+    "motion_to_twist",
+]
+
+# Below this rotation angle (radians) the coefficients use their Taylor series; the
+# series' truncation error (theta^6 terms) is far below float64 epsilon there.
+_SMALL_ANGLE = 1e-3
+
+
+def _hat(phi: torch.Tensor) -> torch.Tensor:
+    """Skew-symmetric matrices ``(B, 3, 3)`` of vectors ``(B, 3)``: ``hat(a) @ b == a x b``."""
+    zero = torch.zeros_like(phi[:, 0])
+    x, y, z = phi.unbind(-1)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).view(-1, 3, 3)
+
+
+def _coefficients(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``A = sin t / t``, ``B = (1 - cos t) / t^2``, ``C = (t - sin t) / t^3`` from ``t^2``, safe at zero."""
+    small = theta2 < _SMALL_ANGLE**2
+    # Replace small angles by 1 before the closed forms so their (unused) branch has no 0/0.
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = t2.sqrt()
+    a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
+    c = torch.where(small, 1 / 6 - theta2 / 120 + theta2**2 / 5040, (t - torch.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """Exponential map ``(B, 6) -> (B, 4, 4)``; ``xi = (rho, phi)``, translation part first.
+
+    Gradients are finite at ``phi = 0`` (kornia uses series expansions near zero).
+
+    >>> se3_exp(torch.zeros(1, 6))[0]
+    tensor([[1., 0., 0., 0.],
+            [0., 1., 0., 0.],
+            [0., 0., 1., 0.],
+            [0., 0., 0., 1.]])
+    """
+    check_shape(xi, ["B", "6"], "xi")
+    check_float(xi, "xi")
+    rho, phi = xi[:, :3], xi[:, 3:]
+    W = _hat(phi)
+    W2 = W @ W
+    a, b, c = (k[:, None, None] for k in _coefficients((phi * phi).sum(-1)))
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(W)
+    R = eye + a * W + b * W2  # Rodrigues
+    V = eye + b * W + c * W2  # left Jacobian of SO(3)
+    top = torch.cat([R, (V @ rho[..., None])], dim=-1)
+    bottom = torch.zeros_like(top[:, :1])
+    bottom[..., 3] = 1.0
+    return torch.cat([top, bottom], dim=1)
+
+
+def se3_log(T: torch.Tensor) -> torch.Tensor:
+    """Logarithm map ``(B, 4, 4) -> (B, 6)``, the inverse of :func:`se3_exp` for rotations below pi."""
+    check_shape(T, ["B", "4", "4"], "T")
+    check_float(T, "T")
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    # 2 sin(theta) * axis, from the antisymmetric part of R.
+    vee = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)
+    cos = 0.5 * (R.diagonal(dim1=1, dim2=2).sum(-1) - 1)
+    # atan2 instead of acos: acos has an infinite derivative at cos = 1 (zero rotation).
+    # The norm is taken of a clamped square so its gradient is finite at vee = 0.
+    sin = 0.5 * (vee * vee).sum(-1).clamp_min(torch.finfo(T.dtype).tiny).sqrt()
+    theta = torch.atan2(sin, cos)
+    theta2 = theta * theta
+    small = theta2 < _SMALL_ANGLE**2
+    safe_sin = torch.where(small, torch.ones_like(sin), sin)
+    # phi = theta / (2 sin theta) * vee; theta / sin theta = 1 + theta^2 / 6 + 7 theta^4 / 360 near zero.
+    scale = torch.where(small, 1 + theta2 / 6 + 7 * theta2**2 / 360, theta / safe_sin)
+    phi = 0.5 * scale[:, None] * vee
+    # V^-1 = I - W / 2 + D W^2 with D = (1 - A / (2 B)) / theta^2 (series near zero).
+    a, b, _ = _coefficients(theta2)
+    safe_t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    d = torch.where(small, 1 / 12 + theta2 / 720 + theta2**2 / 30240, (1 - a / (2 * b)) / safe_t2)
+    W = _hat(phi)
+    eye = torch.eye(3, dtype=T.dtype, device=T.device).expand_as(W)
+    V_inv = eye - 0.5 * W + d[:, None, None] * (W @ W)
+    rho = (V_inv @ t[..., None])[..., 0]
+    return torch.cat([rho, phi], dim=-1)
+
+
+def se3_inverse(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of rigid motions ``(B, 4, 4)`` in closed form: ``[R^T, -R^T t]``."""
+    check_shape(T, ["B", "4", "4"], "T")
+    R_t = T[:, :3, :3].transpose(1, 2)
+    out = torch.zeros_like(T)
+    out[:, :3, :3] = R_t
+    out[:, :3, 3] = -(R_t @ T[:, :3, 3:4])[..., 0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply ``dst_T_src`` ``(B, 4, 4)`` to points ``(B, N, 3)`` in ``src``; returns points in ``dst``."""
+    dims = check_shape(T, ["B", "4", "4"], "T")
+    check_shape(points, ["B", "N", "3"], "points", dims)
+    return points @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+
+
+def twist_to_motion(twist: torch.Tensor) -> torch.Tensor:
+    """The paper's ego-motion ``(U, V, W, alpha, beta, gamma)`` ``(B, 6)`` -> ``camera_t_T_camera_{t-1}`` ``(B, 4, 4)``.
+
+    >>> M = twist_to_motion(torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]]))
+    >>> M[0, 2, 3]  # moving forward 0.1 m brings static points 0.1 m closer
+    tensor(-0.1000)
+    """
+    return se3_exp(-twist)
+
+
+def motion_to_twist(motion: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`twist_to_motion`: ``camera_t_T_camera_{t-1}`` ``(B, 4, 4)`` -> ``(B, 6)``."""
+    return -se3_log(motion)
