@@ -1,0 +1,106 @@
+"""Shared benchmark plumbing: timing, machine metadata, JSON and the README's tables.
+
+Benchmarks measure ratios against OpenCV in the same run (shared machines are noisy),
+interleaving the methods so that a burst of load hits all of them alike, and report
+medians with the inter-quartile range.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def machine_info() -> dict:
+    """Versions and machine facts stored beside every result."""
+    return {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "opencv": cv2.__version__,
+        "opencv_threads": cv2.getNumThreads(),
+        "numpy": np.__version__,
+        "cuda": torch.cuda.is_available(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def set_threads(n: int) -> None:
+    """Give torch and OpenCV the same number of threads."""
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+
+
+def time_interleaved(fns: dict[str, Callable[[], object]], repeats: int = 7, warmup: int = 1) -> dict[str, dict]:
+    """Time several callables round-robin; returns ``{name: {"median_ms", "q1_ms", "q3_ms", "runs"}}``."""
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    samples: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            samples[name].append((time.perf_counter() - t0) * 1e3)
+    return {k: summarize(v) for k, v in samples.items()}
+
+
+def summarize(ms: list[float]) -> dict:
+    """Median and quartiles of a list of milliseconds."""
+    q = statistics.quantiles(ms, n=4) if len(ms) > 1 else [ms[0]] * 3
+    return {"median_ms": statistics.median(ms), "q1_ms": q[0], "q3_ms": q[2], "runs": len(ms)}
+
+
+def write_json(name: str, payload: dict) -> Path:
+    """Write ``benchmarks/results/<name>.json`` with machine metadata added."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    payload = {"machine": machine_info(), **payload}
+    path.write_text(json.dumps(payload, indent=2, default=float))
+    return path
+
+
+def markdown_table(header: list[str], rows: list[list[object]]) -> str:
+    """A GitHub markdown table; floats are printed with 3 significant decimals."""
+
+    def fmt(v: object) -> str:
+        if isinstance(v, float):
+            return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def update_readme(section: str, text: str) -> None:
+    """Replace the README between ``<!-- BEGIN {section} -->`` and ``<!-- END {section} -->``.
+
+    Also writes ``benchmarks/results/<section>.md``. The README is left alone when it has no
+    such markers (the table then lives only in the results folder).
+    """
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / f"{section}.md").write_text(text + "\n")
+    readme = ROOT / "README.md"
+    if not readme.exists():
+        return
+    begin, end = f"<!-- BEGIN {section} -->", f"<!-- END {section} -->"
+    content = readme.read_text()
+    if begin not in content or end not in content:
+        return
+    head, rest = content.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    readme.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
