@@ -1,0 +1,69 @@
+import pytest
+import torch
+
+from egorefine.core import ShapeError
+from egorefine.geometry import (
+    motion_to_twist,
+    se3_exp,
+    se3_inverse,
+    se3_log,
+    transform_points,
+    twist_to_motion,
+)
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-4, 1e-2, 0.3, 1.0])
+def test_exp_log_round_trip(scale):
+    g = torch.Generator().manual_seed(1)
+    xi = torch.randn(8, 6, dtype=torch.float64, generator=g) * scale
+    # The logarithm is the principal one: keep rotation angles below pi.
+    angle = xi[:, 3:].norm(dim=-1, keepdim=True)
+    xi[:, 3:] *= (3.0 / angle.clamp_min(3.0)).clamp(max=1.0)
+    T = se3_exp(xi)
+    R = T[:, :3, :3]
+    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand_as(R))
+    torch.testing.assert_close(se3_log(T), xi, atol=1e-12, rtol=1e-9)
+    torch.testing.assert_close(se3_exp(se3_log(T)), T)
+
+
+def test_rodrigues_against_known_rotation():
+    # 90 degrees about Z maps X to Y.
+    xi = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, torch.pi / 2]], dtype=torch.float64)
+    p = transform_points(se3_exp(xi), torch.tensor([[[1.0, 0.0, 0.0]]], dtype=torch.float64))
+    torch.testing.assert_close(p, torch.tensor([[[0.0, 1.0, 0.0]]], dtype=torch.float64))
+
+
+def test_gradients_finite_at_zero_rotation():
+    xi = torch.zeros(2, 6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(se3_exp, (xi,))
+    T = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1).requires_grad_()
+    se3_log(T).pow(2).sum().backward()
+    assert torch.isfinite(T.grad).all()
+    xi = (torch.randn(2, 6, dtype=torch.float64) * 0.2).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: se3_log(se3_exp(x)), (xi,))
+
+
+def test_inverse_and_transform():
+    T = se3_exp(torch.randn(3, 6, dtype=torch.float64) * 0.5)
+    torch.testing.assert_close(T @ se3_inverse(T), torch.eye(4, dtype=torch.float64).expand_as(T))
+    p = torch.randn(3, 10, 3, dtype=torch.float64)
+    torch.testing.assert_close(transform_points(se3_inverse(T), transform_points(T, p)), p)
+
+
+def test_twist_matches_equation_1_to_first_order():
+    # PAPER.md eq. (1): a static point moves by -T - omega x P relative to the rig.
+    twist = torch.tensor([[0.01, -0.02, 0.1, 0.002, -0.003, 0.001]], dtype=torch.float64)
+    P = torch.tensor([[[1.0, -0.5, 5.0], [-2.0, 1.0, 10.0]]], dtype=torch.float64)
+    moved = transform_points(twist_to_motion(twist), P)
+    T, omega = twist[:, None, :3], twist[:, None, 3:]
+    first_order = P - T - torch.cross(omega.expand_as(P), P, dim=-1)
+    # The remainder is second order in the step: |omega| * (|T| + |omega||P|) ~ 1e-4 here.
+    assert (moved - first_order).abs().max() < 5e-4
+    torch.testing.assert_close(motion_to_twist(twist_to_motion(twist)), twist)
+
+
+def test_bad_shapes():
+    with pytest.raises(ShapeError, match="xi"):
+        se3_exp(torch.zeros(6))
+    with pytest.raises(ShapeError, match="T"):
+        se3_log(torch.zeros(2, 3, 4))
