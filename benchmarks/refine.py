@@ -130,7 +130,7 @@ def benchmark_sequence(preset, scene, motion, max_disp, frames, size, seed, figu
 
     maps = {}
     for name, sub in (("own stereo, integer", False), ("own stereo, sub-pixel", True)):
-        d, v, ms = run_per_frame(lambda l, r, s=sub: block_matching(l, r, max_disp, subpixel=s), seq)
+        d, v, ms = run_per_frame(lambda a, b, s=sub: block_matching(a, b, max_disp, subpixel=s), seq)
         maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
         record(name, d, v, ms, T)
     for name, fn in opencv_matchers(max_disp).items():
@@ -207,8 +207,9 @@ def main() -> None:
             summary[f"{preset}/{name}"] = vals
             rows.append([preset, name, vals["epe"], vals["median"], vals["bad-0.5"], vals["bad-1"], vals["density"],
                          vals["temporal"], f"{vals['levels_row']:.0f}", f"{n}/{total}", vals["ms_mean"]])
-    gt_levels = {p: statistics.fmean(r["gt_levels_row"] for r in results if r["preset"] == p) for p in ("paper", "kitti")}
-    track = {p: statistics.fmean(r["tracking_ms"] for r in results if r["preset"] == p) for p in ("paper", "kitti")}
+    rigs = ("paper", "kitti")
+    gt_levels = {p: statistics.fmean(r["gt_levels_row"] for r in results if r["preset"] == p) for p in rigs}
+    track = {p: statistics.fmean(r["tracking_ms"] for r in results if r["preset"] == p) for p in rigs}
     notes = []
     for p in ("paper", "kitti"):
         own = summary[f"{p}/own stereo, sub-pixel"]["ms_mean"]
