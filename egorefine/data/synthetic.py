@@ -1,0 +1,680 @@
+"""Synthetic stereo video with exact ground truth: textured boxes ray-cast in torch.
+
+A scene is a list of oriented boxes (the enclosing room is a box seen from inside, so every ray hits a
+surface and depth is finite everywhere). A rectified stereo rig moves along a smooth, seeded 6-DoF
+trajectory through it. Both images of every pair are rendered from the same Lambertian surfaces, so the
+pair is physically consistent and disparity, depth and occlusion come exactly from the geometry.
+
+Conventions (PAPER.md): camera frame X right, Y down, Z forward; the world frame is the first nominal
+camera frame (Y down, Z along the direction of travel); disparity ``d = x_left - x_right = f B / Z``;
+``poses[t]`` is ``world_T_camera`` of the left camera, ``motions[t] = camera_t_T_camera_{t-1}``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+import torch
+
+from ..core import ValueRangeError, check_choice
+from ._texture import make_texture
+
+__all__ = ["RigPreset", "StereoSequence", "PRESETS", "SCENES", "MOTIONS", "render_sequence"]
+
+
+@dataclass(frozen=True)
+class RigPreset:
+    """A stereo rig and the scale of the world it moves through.
+
+    Attributes:
+        height, width: image size in pixels.
+        focal: focal length in pixels (square pixels; principal point at the image centre).
+        baseline: metres.
+        fps: frames per second.
+        speed: nominal forward travel per frame in metres.
+        scale: spatial scale of the scenes (room widths, object sizes) relative to the indoor rig.
+        cam_height: height of the camera above the floor in metres.
+        texel: metres per texel of the surface texture at level 0.
+        far: how far the scene extends beyond the end of the trajectory, metres.
+        scene: the default scene.
+    """
+
+    height: int
+    width: int
+    focal: float
+    baseline: float
+    fps: float
+    speed: float
+    scale: float
+    cam_height: float
+    texel: float
+    far: float
+    scene: str
+
+
+PRESETS: dict[str, RigPreset] = {
+    # The paper's rig: 640x480, f = 3.5 mm / 8.8 um = 398 px, B = 8 cm, 7 frames/s, ~0.1 m per frame indoors.
+    "paper": RigPreset(480, 640, 398.0, 0.08, 7.0, 0.1, 1.0, 1.2, 0.004, 14.0, "corridor"),
+    # KITTI-like: 1242x375, f = 721.5 px, B = 0.54 m, 10 frames/s, ~1 m per frame, depths ~5-80 m.
+    "kitti": RigPreset(375, 1242, 721.5377, 0.5372, 10.0, 1.0, 6.0, 1.65, 0.010, 75.0, "street"),
+}
+
+SCENES: dict[str, str] = {
+    "corridor": "a long corridor (about 3 m wide and 2.7 m high on the paper rig) lined with crates, pillars "
+    "and boxes hanging from the ceiling; the end wall closes the view",
+    "hall": "a wide hall (about 8 m) with pillars, scattered rotated crates and slanted panels around a free lane",
+    "street": "a street canyon: road, building blocks of varying height and setback on both sides, parked "
+    "'cars', poles, under a high ceiling that stands in for the sky",
+}
+
+MOTIONS: dict[str, str] = {
+    "forward": "forward at the preset speed (+-15 %) with small sinusoidal sway, bob, yaw, pitch and roll "
+    "(a fraction of a degree per frame)",
+    "turn": "forward while yawing +-20 degrees (about 1.2 degrees per frame), a gentle slalom",
+    "lateral": "mostly sideways: a lateral sinusoid (peak speed about the preset speed) with slow forward travel",
+    "shaky": "forward at 80 % speed with larger, faster pitch/roll/yaw oscillations (hand-held)",
+    "still": "nearly still: millimetre jitter and hundredths of a degree (like a hovering drone)",
+}
+
+
+@dataclass
+class StereoSequence:
+    """A rendered (or loaded) rectified stereo sequence with ground truth.
+
+    Attributes:
+        left, right: ``(T, 1, H, W)`` grey images in [0, 1].
+        disparity: ``(T, 1, H, W)`` left-view disparity in pixels (``f B / depth``).
+        depth: ``(T, 1, H, W)`` left-view depth ``Z`` in metres, finite everywhere.
+        occluded: ``(T, 1, H, W)`` bool, left pixels whose surface point is hidden in or outside the right image.
+        poses: ``(T, 4, 4)`` ``world_T_camera`` of the left camera.
+        motions: ``(T, 4, 4)`` ``camera_t_T_camera_{t-1}``; identity at ``t = 0``.
+        K: ``(3, 3)`` intrinsics of both (rectified) cameras.
+        baseline: metres.
+        fps: frames per second.
+    """
+
+    left: torch.Tensor
+    right: torch.Tensor
+    disparity: torch.Tensor
+    depth: torch.Tensor
+    occluded: torch.Tensor
+    poses: torch.Tensor
+    motions: torch.Tensor
+    K: torch.Tensor
+    baseline: float
+    fps: float
+
+    def __len__(self) -> int:
+        return self.left.shape[0]
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> StereoSequence:
+        """A copy on ``device``; floating tensors also cast to ``dtype`` when given."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, torch.Tensor):
+                v = v.to(device=device, dtype=dtype if (dtype is not None and v.is_floating_point()) else None)
+            out[f.name] = v
+        return replace(self, **out)
+
+    def batch(self, t: int | slice) -> dict[str, torch.Tensor]:
+        """Frame(s) ``t`` batched: images ``(B,1,H,W)``, ``K`` ``(B,3,3)``, ``baseline`` ``(B,)``.
+
+        >>> seq = render_sequence(num_frames=2, height=24, width=32)
+        >>> seq.batch(1)["left"].shape, seq.batch(slice(0, 2))["K"].shape
+        (torch.Size([1, 1, 24, 32]), torch.Size([2, 3, 3]))
+        """
+        idx = slice(t, t + 1) if isinstance(t, int) else t
+        left = self.left[idx]
+        b = left.shape[0]
+        return {
+            "left": left,
+            "right": self.right[idx],
+            "disparity": self.disparity[idx],
+            "depth": self.depth[idx],
+            "occluded": self.occluded[idx],
+            "poses": self.poses[idx],
+            "motions": self.motions[idx],
+            "K": self.K.expand(b, 3, 3).clone(),
+            "baseline": torch.full((b,), self.baseline, dtype=left.dtype, device=left.device),
+        }
+
+
+# ----------------------------------------------------------------------------------------------- trajectory
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _trajectory(motion: str, num_frames: int, preset: RigPreset, rng: np.random.Generator) -> np.ndarray:
+    """Smooth 6-DoF ``world_T_camera`` poses ``(T, 4, 4)`` (float64) of the left camera."""
+    deg = math.pi / 180.0
+    v, s = preset.speed, preset.scale
+    # (speed factor, yaw, pitch, roll amplitudes in degrees, their periods in frames, sway x / bob y in metres)
+    table = {
+        "forward": (1.0, 2.0, 1.0, 1.2, (50, 70), (35, 50), (40, 60), 0.04 * s, 0.02 * s),
+        "turn": (1.0, 20.0, 1.0, 2.0, (90, 110), (35, 50), (40, 60), 0.03 * s, 0.02 * s),
+        "lateral": (0.35, 1.0, 0.5, 0.5, (50, 70), (35, 50), (40, 60), min(v * 60 / (2 * math.pi), 0.8 * s), 0.02 * s),
+        "shaky": (0.8, 3.0, 2.5, 3.0, (20, 30), (15, 25), (18, 28), 0.03 * s, 0.03 * s),
+        "still": (0.0, 0.05, 0.05, 0.05, (40, 60), (30, 50), (30, 50), 0.003 * s, 0.002 * s),
+    }
+    k_v, a_yaw, a_pitch, a_roll, p_yaw, p_pitch, p_roll, a_x, a_y = table[motion]
+    ph = rng.uniform(0, 2 * math.pi, size=6)
+    per = [rng.uniform(*p) for p in (p_yaw, p_pitch, p_roll)]
+    p_x = 60.0 if motion == "lateral" else rng.uniform(40, 60)
+    p_y, p_v = rng.uniform(25, 35), rng.uniform(30, 50)
+    t = np.arange(num_frames, dtype=np.float64)
+
+    def wave(amp: float, period: float, phase: float) -> np.ndarray:
+        # Zero at t = 0 so the first camera is the world frame up to the sway offsets.
+        return amp * (np.sin(2 * math.pi * t / period + phase) - math.sin(phase))
+
+    yaw = wave(a_yaw * deg, per[0], ph[0])
+    pitch = wave(a_pitch * deg, per[1], ph[1])
+    roll = wave(a_roll * deg, per[2], ph[2])
+    speed = k_v * v * (1.0 + 0.15 * np.sin(2 * math.pi * t / p_v + ph[3]))
+    # Integrate the forward velocity along the heading (midpoint rule), then add sway and bob.
+    heading = np.stack([np.sin(yaw), np.zeros_like(yaw), np.cos(yaw)], axis=-1)
+    step = 0.5 * (speed[1:, None] * heading[1:] + speed[:-1, None] * heading[:-1])
+    pos = np.concatenate([np.zeros((1, 3)), np.cumsum(step, axis=0)], axis=0)
+    pos[:, 0] += wave(a_x, p_x, ph[4])
+    pos[:, 1] += wave(a_y, p_y, ph[5])
+    poses = np.tile(np.eye(4), (num_frames, 1, 1))
+    for i in range(num_frames):  # loop over frames (a handful of 3x3 products)
+        poses[i, :3, :3] = _rot_y(yaw[i]) @ _rot_x(pitch[i]) @ _rot_z(roll[i])
+        poses[i, :3, 3] = pos[i]
+    return poses
+
+
+# ---------------------------------------------------------------------------------------------------- scenes
+
+
+@dataclass
+class _Box:
+    centre: np.ndarray  # (3,)
+    rot: np.ndarray  # (3, 3) columns are the box axes in the world
+    half: np.ndarray  # (3,) half extents
+    inside: bool = False  # True for the enclosing room (seen from within)
+
+
+class _SceneBuilder:
+    """Collects boxes around a trajectory, keeping a clear lane around the camera path."""
+
+    def __init__(self, poses: np.ndarray, preset: RigPreset, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.s = preset.scale
+        pos = poses[:, :3, 3]
+        self.xmin, self.xmax = pos[:, 0].min(), pos[:, 0].max()
+        self.ymin, self.ymax = pos[:, 1].min(), pos[:, 1].max()
+        self.zmin, self.zmax = pos[:, 2].min(), pos[:, 2].max()
+        self.floor = self.ymax + preset.cam_height  # world Y points down
+        self.far = preset.far
+        self.boxes: list[_Box] = []
+
+    def room(self, half_width: float, height_above: float, back: float) -> None:
+        x0, x1 = self.xmin - half_width, self.xmax + half_width
+        y0, y1 = self.ymin - height_above, self.floor
+        z0, z1 = self.zmin - back, self.zmax + self.far
+        self.x0, self.x1, self.y0, self.z0, self.z1 = x0, x1, y0, z0, z1
+        self.boxes.append(
+            _Box(np.array([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2]), np.eye(3),
+                 np.array([(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2]), inside=True)
+        )
+
+    def add(self, centre: tuple[float, float, float], half: tuple[float, float, float], yaw: float = 0.0,
+            tilt: float = 0.0) -> None:
+        rot = _rot_y(yaw) @ _rot_z(tilt)
+        self.boxes.append(_Box(np.asarray(centre, dtype=np.float64), rot, np.asarray(half, dtype=np.float64)))
+
+    def x_extent(self, half: np.ndarray, yaw: float) -> float:
+        """Half extent along world x of a box yawed by ``yaw``."""
+        return abs(math.cos(yaw)) * half[0] + abs(math.sin(yaw)) * half[2]
+
+    def side_objects(self, clearance: float, spacing: float, tall: float) -> None:
+        """Crates and pillars along both walls, outside the lane ``[xmin - clearance, xmax + clearance]``."""
+        rng, s = self.rng, self.s
+        for side in (-1.0, 1.0):
+            z = self.z0 + rng.uniform(0.3, 1.0) * spacing
+            while z < self.z1 - 0.5 * s:
+                kind = rng.uniform()
+                yaw = rng.uniform(-0.5, 0.5) if kind < 0.5 else 0.0
+                if kind < 0.7:  # crate on the floor
+                    half = np.array([rng.uniform(0.15, 0.4), rng.uniform(0.2, 0.75), rng.uniform(0.15, 0.45)]) * s
+                    yc = self.floor - half[1]
+                elif kind < 0.85:  # pillar floor to ceiling
+                    w = rng.uniform(0.1, 0.25, 2) * s
+                    half = np.array([w[0], (self.floor - self.y0) / 2, w[1]])
+                    yc = (self.floor + self.y0) / 2
+                else:  # box on a shelf, mid-height
+                    half = np.array([rng.uniform(0.1, 0.3), rng.uniform(0.1, 0.3), rng.uniform(0.1, 0.3)]) * s
+                    yc = self.floor - tall * rng.uniform(0.3, 0.6)
+                ext = self.x_extent(half, yaw)
+                lane_edge = (self.xmax + clearance) if side > 0 else (self.xmin - clearance)
+                wall = self.x1 if side > 0 else self.x0
+                room_for = abs(wall - lane_edge) - 2 * ext
+                if room_for > 0:
+                    xc = lane_edge + side * (ext + rng.uniform(0.3, 1.0) * room_for)
+                    self.add((xc, yc, z), tuple(half), yaw=yaw)
+                z += spacing * rng.uniform(0.6, 1.4)
+
+    def hanging(self, spacing: float, clearance_above: float) -> None:
+        """Boxes hanging from the ceiling across the lane, their bottom above the camera path."""
+        rng, s = self.rng, self.s
+        z = self.z0 + spacing * rng.uniform(0.5, 1.5)
+        while z < self.z1 - s:
+            bottom = self.ymin - clearance_above
+            top = self.y0
+            if bottom - top > 0.1 * s:
+                h = (bottom - top) * rng.uniform(0.3, 0.9) / 2
+                xc = rng.uniform(self.x0 + 0.3 * s, self.x1 - 0.3 * s)
+                self.add((xc, top + h, z), (rng.uniform(0.2, 0.6) * s, h, rng.uniform(0.05, 0.2) * s),
+                         yaw=rng.uniform(-0.3, 0.3))
+            z += spacing * rng.uniform(0.6, 1.4)
+
+
+def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.random.Generator) -> list[_Box]:
+    b = _SceneBuilder(poses, preset, rng)
+    s = b.s
+    if scene == "corridor":
+        b.room(half_width=1.5 * s, height_above=1.5 * s, back=3.0 * s)
+        b.side_objects(clearance=0.55 * s, spacing=1.0 * s, tall=1.5 * s)
+        b.hanging(spacing=2.5 * s, clearance_above=0.45 * s)
+        # A few obstacles on the end wall region make the far field less flat.
+        for _ in range(3):
+            half = np.array([rng.uniform(0.2, 0.5), rng.uniform(0.3, 0.9), rng.uniform(0.2, 0.5)]) * s
+            b.add((rng.uniform(b.x0 + half[0], b.x1 - half[0]), b.floor - half[1],
+                   b.z1 - rng.uniform(1.0, 3.0) * s), tuple(half), yaw=rng.uniform(-0.6, 0.6))
+    elif scene == "hall":
+        b.room(half_width=4.0 * s, height_above=2.5 * s, back=4.0 * s)
+        b.side_objects(clearance=0.8 * s, spacing=0.7 * s, tall=2.0 * s)
+        b.hanging(spacing=3.0 * s, clearance_above=0.6 * s)
+        # Slanted panels leaning against the side walls.
+        for side in (-1.0, 1.0):
+            z = b.z0 + rng.uniform(1.0, 3.0) * s
+            while z < b.z1 - s:
+                half = (0.03 * s, rng.uniform(0.4, 0.9) * s, rng.uniform(0.3, 0.8) * s)
+                xc = (b.x1 if side > 0 else b.x0) - side * 0.5 * s
+                b.add((xc, b.floor - half[1] * 0.9, z), half, yaw=rng.uniform(-0.4, 0.4), tilt=side * 0.35)
+                z += rng.uniform(3.0, 6.0) * s
+    elif scene == "street":
+        b.room(half_width=3.5 * s, height_above=6.0 * s, back=4.0 * s)
+        # Building blocks along both sides: varying height and setback, with gaps between them.
+        for side in (-1.0, 1.0):
+            z = b.z0
+            while z < b.z1:
+                length = rng.uniform(1.0, 2.5) * s
+                depth = rng.uniform(0.3, 1.0) * s
+                height = rng.uniform(0.8, 5.5) * s
+                inner = (b.xmax + rng.uniform(2.0, 2.8) * s) if side > 0 else (b.xmin - rng.uniform(2.0, 2.8) * s)
+                xc = inner + side * depth
+                b.add((xc, b.floor - height / 2, z + length / 2), (depth, height / 2, length / 2))
+                z += length + rng.uniform(0.0, 0.6) * s
+        # Parked 'cars' (low boxes) and poles at the kerb.
+        b.side_objects(clearance=0.9 * s, spacing=1.2 * s, tall=0.6 * s)
+    else:  # pragma: no cover - guarded by check_choice
+        raise ValueRangeError(f"scene: unknown {scene!r}")
+    return b.boxes
+
+
+def _lights(boxes: list[_Box], poses: np.ndarray, preset: RigPreset) -> np.ndarray:
+    """Point lights under the ceiling along the path, ``(L, 3)``."""
+    room = boxes[0]
+    y_ceiling = room.centre[1] - room.half[1]
+    z0 = room.centre[2] - room.half[2]
+    z1 = room.centre[2] + room.half[2]
+    s = preset.scale
+    zs = np.arange(z0 + 1.5 * s, z1, 3.5 * s)
+    pos = poses[:, :3, 3]
+    xc = 0.5 * (pos[:, 0].min() + pos[:, 0].max())
+    xs = xc + 0.6 * s * np.where(np.arange(len(zs)) % 2 == 0, 1.0, -1.0)
+    ys = np.full_like(zs, y_ceiling + 0.15 * s)
+    return np.stack([xs, ys, zs], axis=-1)
+
+
+# ------------------------------------------------------------------------------------------------ ray casting
+
+
+class _Renderer:
+    """Ray caster and shader for one scene (all tensors on the render device)."""
+
+    _OTHER_AXES = ((1, 2), (0, 2), (0, 1))
+
+    def __init__(self, boxes: list[_Box], lights: np.ndarray, preset: RigPreset, K: np.ndarray,
+                 height: int, width: int, rng: np.random.Generator, texture_seed: int,
+                 device: torch.device, dtype: torch.dtype) -> None:
+        self.device, self.dtype = device, dtype
+        self.h, self.w = height, width
+        self.K = K
+        self.f, self.cx, self.cy = K[0, 0], K[0, 2], K[1, 2]
+        self.np_boxes = boxes
+        self.scale = preset.scale
+
+        def t(x: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(x), device=device, dtype=dtype)
+
+        self.centre = t(np.stack([b.centre for b in boxes]))
+        self.rot = t(np.stack([b.rot for b in boxes]))
+        self.half = t(np.stack([b.half for b in boxes]))
+        self.inside = torch.as_tensor([b.inside for b in boxes], device=device)
+        n_faces = 6 * len(boxes)
+        ang = rng.uniform(0, 2 * math.pi, n_faces)
+        scl = rng.uniform(0.75, 1.35, n_faces) * preset.texel
+        off = rng.uniform(0, 4096, (n_faces, 2))
+        # Texel coordinates = A_f @ (u, v) + off_f with A_f a rotation over the texel size.
+        A = np.stack([np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)], -1).reshape(-1, 2, 2) / scl[:, None, None]
+        self.face_A = t(A)
+        self.face_off = t(off)
+        self.face_texel = t(scl)
+        self.face_gain = t(rng.uniform(0.7, 1.05, n_faces))
+        self.face_bias = t(rng.uniform(-0.05, 0.05, n_faces))
+        self.lights = t(lights)
+        self.light_range = 4.0 * preset.scale
+        self.texture = make_texture(texture_seed, device=str(device), dtype=dtype)
+        self.eps = 1e-6 * preset.scale
+
+    # -- culling: pixel rectangle covered by each box in a camera
+
+    def rects(self, world_T_cam: np.ndarray) -> list[tuple[int, int, int, int] | None]:
+        """Per box ``(x0, x1, y0, y1)`` (half-open, clipped) or ``None`` when the box cannot be seen."""
+        R, c = world_T_cam[:3, :3], world_T_cam[:3, 3]
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+        out: list[tuple[int, int, int, int] | None] = []
+        near = 1e-3 * self.scale
+        for b in self.np_boxes:
+            if b.inside:
+                out.append((0, self.w, 0, self.h))
+                continue
+            corners = b.centre + (signs * b.half) @ b.rot.T
+            cam = (corners - c) @ R
+            z = cam[:, 2]
+            if (z <= near).all():
+                out.append(None)
+                continue
+            if (z <= near).any():
+                out.append((0, self.w, 0, self.h))
+                continue
+            x = self.f * cam[:, 0] / z + self.cx
+            y = self.f * cam[:, 1] / z + self.cy
+            x0, x1 = max(int(math.floor(x.min())) - 1, 0), min(int(math.ceil(x.max())) + 2, self.w)
+            y0, y1 = max(int(math.floor(y.min())) - 1, 0), min(int(math.ceil(y.max())) + 2, self.h)
+            out.append((x0, x1, y0, y1) if (x0 < x1 and y0 < y1) else None)
+        return out
+
+    # -- ray/box intersection
+
+    def _hit(self, b: int, origin: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """Ray parameter of the visible hit with box ``b`` (inf on a miss) for rays ``origin + t dirs`` ``(n, 3)``."""
+        R = self.rot[b]
+        o = (origin - self.centre[b]) @ R  # local frame; origin (3,) or (n, 3)
+        d = dirs @ R
+        tiny = torch.finfo(d.dtype).tiny ** 0.5
+        d = torch.where(d.abs() < tiny, torch.full_like(d, tiny), d)  # slab test needs no exact zeros
+        inv = 1.0 / d
+        h = self.half[b]
+        t1 = (-h - o) * inv
+        t2 = (h - o) * inv
+        t_near = torch.minimum(t1, t2).amax(-1)
+        t_far = torch.maximum(t1, t2).amin(-1)
+        if bool(self.inside[b]):
+            return t_far  # the room: the camera is inside, the exit point is the visible wall
+        hit = (t_near <= t_far) & (t_near > self.eps)
+        return torch.where(hit, t_near, torch.full_like(t_near, math.inf))
+
+    def cast_grid(self, origin: torch.Tensor, dirs: torch.Tensor, rects: list, full_columns: bool = False
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Nearest hit for a grid of rays ``dirs`` ``(H, W, 3)``: ``t`` ``(H, W)`` and box index ``(H, W)``.
+
+        ``origin`` is ``(3,)`` or ``(H, W, 3)``. Each box is tested only inside its image rectangle.
+        """
+        H, W = dirs.shape[:2]
+        t_best = torch.full((H, W), math.inf, device=self.device, dtype=self.dtype)
+        id_best = torch.zeros((H, W), device=self.device, dtype=torch.long)
+        for b, r in enumerate(rects):  # loop over primitives
+            if r is None:
+                continue
+            x0, x1, y0, y1 = r
+            if full_columns:
+                x0, x1 = 0, W
+            if x0 >= x1:
+                continue
+            d = dirs[y0:y1, x0:x1].reshape(-1, 3)
+            o = origin if origin.dim() == 1 else origin[y0:y1, x0:x1].reshape(-1, 3)
+            t = self._hit(b, o, d).view(y1 - y0, x1 - x0)
+            cur = t_best[y0:y1, x0:x1]
+            closer = t < cur
+            t_best[y0:y1, x0:x1] = torch.where(closer, t, cur)
+            id_best[y0:y1, x0:x1] = torch.where(closer, torch.full_like(closer, b, dtype=torch.long),
+                                                id_best[y0:y1, x0:x1])
+        return t_best, id_best
+
+    def cast_points(self, origin: torch.Tensor, dirs: torch.Tensor, pix: torch.Tensor, rects: list
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Nearest hit for scattered rays ``dirs`` ``(n, 3)`` through pixels ``pix`` ``(n, 2)``."""
+        n = dirs.shape[0]
+        t_best = torch.full((n,), math.inf, device=self.device, dtype=self.dtype)
+        id_best = torch.zeros((n,), device=self.device, dtype=torch.long)
+        for b, r in enumerate(rects):  # loop over primitives
+            if r is None:
+                continue
+            x0, x1, y0, y1 = r
+            sel = (pix[:, 0] >= x0 - 1) & (pix[:, 0] <= x1) & (pix[:, 1] >= y0 - 1) & (pix[:, 1] <= y1)
+            idx = sel.nonzero().squeeze(1)
+            if idx.numel() == 0:
+                continue
+            t = self._hit(b, origin, dirs[idx])
+            cur = t_best[idx]
+            closer = t < cur
+            t_best[idx] = torch.where(closer, t, cur)
+            id_best[idx] = torch.where(closer, torch.full_like(idx, b), id_best[idx])
+        return t_best, id_best
+
+    # -- shading
+
+    def face_id(self, points: torch.Tensor, box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Face index ``(n,)``, local hit point ``(n, 3)`` and face axis ``(n,)`` of world ``points`` on ``box``."""
+        local = ((points - self.centre[box])[:, None, :] @ self.rot[box])[:, 0]
+        rel = local.abs() / self.half[box]
+        axis = rel.argmax(-1)
+        pos = local.gather(1, axis[:, None])[:, 0] > 0
+        return box * 6 + axis * 2 + pos.long(), local, axis
+
+    def shade(self, origin: torch.Tensor, dirs: torch.Tensor, t: torch.Tensor, box: torch.Tensor,
+              supersample: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """Intensity ``(n,)`` and face id ``(n,)`` of hits ``origin + t dirs`` (``dirs`` in camera units, z = 1)."""
+        pts = origin + t[:, None] * dirs
+        face, local, axis = self.face_id(pts, box)
+        others = torch.as_tensor(self._OTHER_AXES, device=self.device)[axis]  # (n, 2)
+        uv = local.gather(1, others)
+        tex_uv = (self.face_A[face] @ uv[:, :, None])[:, :, 0] + self.face_off[face]
+        # Normal facing the viewer side of the surface (outward for solid boxes, inward for the room).
+        sign = torch.where(local.gather(1, axis[:, None])[:, 0] > 0, 1.0, -1.0).to(self.dtype)
+        sign = torch.where(self.inside[box], -sign, sign)
+        normal = self.rot[box].gather(2, axis[:, None, None].expand(-1, 3, 1))[:, :, 0] * sign[:, None]
+        # Footprint of a pixel on the surface (geometric mean of its two axes), in texels: band-limits the texture.
+        cos = (normal * dirs).sum(-1).abs() / dirs.norm(dim=-1)
+        footprint = t / (self.f * supersample * cos.clamp_min(1e-3).sqrt()) / self.face_texel[face]
+        albedo = self.texture.sample(tex_uv[:, 0], tex_uv[:, 1], footprint)
+        # Lambertian lighting from fixed point lights (view-independent, so left and right agree).
+        to_light = self.lights[None, :, :] - pts[:, None, :]
+        r2 = (to_light * to_light).sum(-1)
+        lam = ((to_light * normal[:, None, :]).sum(-1) / r2.sqrt()).clamp_min(0.0)
+        irradiance = (lam / (1.0 + r2 / self.light_range**2)).sum(-1)
+        shading = 0.5 + 0.5 * (1.0 - torch.exp(-1.5 * irradiance))
+        value = albedo * shading * self.face_gain[face] + self.face_bias[face]
+        return value.clamp(0.02, 0.98), face
+
+    # -- one image
+
+    def render_view(self, cam_T: np.ndarray, pixel_dirs: torch.Tensor, antialias: bool
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Image ``(H, W)`` and ray parameter (= depth) ``(H, W)`` seen from camera pose ``cam_T`` (world_T_cam)."""
+        R = torch.as_tensor(cam_T[:3, :3], device=self.device, dtype=self.dtype)
+        origin = torch.as_tensor(cam_T[:3, 3], device=self.device, dtype=self.dtype)
+        dirs = pixel_dirs @ R.T  # (H, W, 3) world directions with unit camera-z component
+        rects = self.rects(cam_T)
+        t, box = self.cast_grid(origin, dirs, rects)
+        value, face = self.shade(origin, dirs.view(-1, 3), t.view(-1), box.view(-1))
+        value, face = value.view(self.h, self.w), face.view(self.h, self.w)
+        if antialias:
+            # Re-render pixels on geometric edges (face changes) with 3x3 samples and average.
+            edge = torch.zeros_like(face, dtype=torch.bool)
+            dx = face[:, 1:] != face[:, :-1]
+            dy = face[1:, :] != face[:-1, :]
+            edge[:, 1:] |= dx
+            edge[:, :-1] |= dx
+            edge[1:, :] |= dy
+            edge[:-1, :] |= dy
+            idx = edge.view(-1).nonzero().squeeze(1)
+            if idx.numel() > 0:
+                ys = (idx // self.w).to(self.dtype)
+                xs = (idx % self.w).to(self.dtype)
+                o = torch.tensor([-1.0 / 3, 0.0, 1.0 / 3], device=self.device, dtype=self.dtype)
+                oy, ox = torch.meshgrid(o, o, indexing="ij")
+                px = (xs[:, None] + ox.reshape(1, -1)).reshape(-1)
+                py = (ys[:, None] + oy.reshape(1, -1)).reshape(-1)
+                cam_dirs = torch.stack([(px - self.cx) / self.f, (py - self.cy) / self.f, torch.ones_like(px)], -1)
+                sub_dirs = cam_dirs @ R.T
+                ts, bs = self.cast_points(origin, sub_dirs, torch.stack([px, py], -1), rects)
+                vs, _ = self.shade(origin, sub_dirs, ts, bs, supersample=3.0)
+                value.view(-1)[idx] = vs.view(-1, 9).mean(-1)
+        return value, t
+
+
+def _pixel_dirs(height: int, width: int, K: np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    ys = torch.arange(height, device=device, dtype=dtype)
+    xs = torch.arange(width, device=device, dtype=dtype)
+    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([(xx - K[0, 2]) / K[0, 0], (yy - K[1, 2]) / K[1, 1], torch.ones_like(xx)], -1)
+
+
+def render_sequence(
+    num_frames: int = 60,
+    preset: str = "paper",
+    scene: str | None = None,
+    motion: str = "forward",
+    seed: int = 0,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+    show_progress: bool = False,
+    height: int | None = None,
+    width: int | None = None,
+    focal: float | None = None,
+    baseline: float | None = None,
+    noise_std: float = 0.0,
+    antialias: bool = True,
+) -> StereoSequence:
+    """Render a rectified stereo sequence with exact ground truth.
+
+    Args:
+        num_frames: ``T`` frames.
+        preset: a key of :data:`PRESETS` (``"paper"``: 640x480, f = 398 px, B = 0.08 m, 7 fps, ~0.1 m/frame;
+            ``"kitti"``: 1242x375, f = 721.5 px, B = 0.537 m, 10 fps, ~1 m/frame).
+        scene: a key of :data:`SCENES`; ``None`` takes the preset's default (``corridor`` / ``street``).
+        motion: a key of :data:`MOTIONS`.
+        seed: seeds the trajectory phases, the scene layout, the surface textures and the noise.
+        device, dtype: where and in which float type to render and return.
+        show_progress: print a frame counter to stderr.
+        height, width: override the image size; the focal length scales with ``width`` unless ``focal`` is given.
+        focal: override the focal length in pixels.
+        baseline: override the baseline in metres.
+        noise_std: standard deviation of additive Gaussian sensor noise (seeded), 0 for none.
+        antialias: supersample pixels on geometric edges 3x3 (textures are always band-limited by mip-mapping).
+
+    Returns:
+        :class:`StereoSequence` with ``left``, ``right``, ``disparity``, ``depth``, ``occluded`` ``(T, 1, H, W)``,
+        ``poses``, ``motions`` ``(T, 4, 4)``, ``K`` ``(3, 3)``, ``baseline`` and ``fps``.
+
+    >>> seq = render_sequence(num_frames=3, height=30, width=40, seed=1)
+    >>> seq.left.shape, seq.poses.shape, bool(torch.isfinite(seq.depth).all())
+    (torch.Size([3, 1, 30, 40]), torch.Size([3, 4, 4]), True)
+    """
+    check_choice(preset, list(PRESETS), "preset")
+    rig = PRESETS[preset]
+    scene = rig.scene if scene is None else scene
+    check_choice(scene, list(SCENES), "scene")
+    check_choice(motion, list(MOTIONS), "motion")
+    if not isinstance(num_frames, int) or num_frames < 1:
+        raise ValueRangeError(f"num_frames: expected an int >= 1, got {num_frames!r}")
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueRangeError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
+    H = rig.height if height is None else int(height)
+    W = rig.width if width is None else int(width)
+    if H < 2 or W < 2:
+        raise ValueRangeError(f"height, width: expected >= 2 pixels, got {H}x{W}")
+    f = rig.focal * W / rig.width if focal is None else float(focal)
+    B = rig.baseline if baseline is None else float(baseline)
+    if not (f > 0 and B > 0 and noise_std >= 0):
+        raise ValueRangeError(f"focal, baseline must be > 0 and noise_std >= 0, got {f}, {B}, {noise_std}")
+    dev = torch.device("cpu") if device is None else torch.device(device)
+    K = np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))
+    poses = _trajectory(motion, num_frames, rig, rng)
+    boxes = _build_scene(scene, poses, rig, np.random.default_rng(np.random.SeedSequence([int(seed), 2])))
+    lights = _lights(boxes, poses, rig)
+    renderer = _Renderer(boxes, lights, rig, K, H, W, np.random.default_rng(np.random.SeedSequence([int(seed), 3])),
+                         texture_seed=int(seed), device=dev, dtype=dtype)
+    noise_gen = torch.Generator(device=dev).manual_seed(int(seed) + 104729)
+    pixel_dirs = _pixel_dirs(H, W, K, dev, dtype)
+    xs = torch.arange(W, device=dev, dtype=dtype)[None, :]
+
+    lefts, rights, depths, occs = [], [], [], []
+    with torch.no_grad():
+        for i in range(num_frames):  # loop over frames
+            pose_l = poses[i]
+            pose_r = pose_l.copy()
+            pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
+            left, depth = renderer.render_view(pose_l, pixel_dirs, antialias)
+            right, _ = renderer.render_view(pose_r, pixel_dirs, antialias)
+            # Occlusion: a shadow ray from the right camera centre to each left surface point, blocked before it?
+            R = torch.as_tensor(pose_l[:3, :3], device=dev, dtype=dtype)
+            o_l = torch.as_tensor(pose_l[:3, 3], device=dev, dtype=dtype)
+            o_r = torch.as_tensor(pose_r[:3, 3], device=dev, dtype=dtype)
+            pts = o_l + depth[..., None] * (pixel_dirs @ R.T)
+            t_sh, _ = renderer.cast_grid(o_r, pts - o_r, renderer.rects(pose_r), full_columns=True)
+            disp = f * B / depth
+            occluded = (t_sh < 1.0 - 1e-4) | (xs - disp < 0.0)
+            if noise_std > 0:
+                left = left + noise_std * torch.randn(left.shape, generator=noise_gen, device=dev, dtype=dtype)
+                right = right + noise_std * torch.randn(right.shape, generator=noise_gen, device=dev, dtype=dtype)
+            lefts.append(left.clamp(0.0, 1.0))
+            rights.append(right.clamp(0.0, 1.0))
+            depths.append(depth)
+            occs.append(occluded)
+            if show_progress:
+                print(f"\rrender_sequence: frame {i + 1}/{num_frames}", end="", file=sys.stderr, flush=True)
+    if show_progress:
+        print(file=sys.stderr)
+
+    depth = torch.stack(depths)[:, None]
+    poses_t = torch.as_tensor(poses, device=dev, dtype=torch.float64)
+    motions = torch.eye(4, dtype=torch.float64, device=dev).repeat(num_frames, 1, 1)
+    if num_frames > 1:
+        motions[1:] = torch.linalg.inv(poses_t[1:]) @ poses_t[:-1]
+    return StereoSequence(
+        left=torch.stack(lefts)[:, None],
+        right=torch.stack(rights)[:, None],
+        disparity=f * B / depth,
+        depth=depth,
+        occluded=torch.stack(occs)[:, None],
+        poses=poses_t.to(dtype),
+        motions=motions.to(dtype),
+        K=torch.as_tensor(K, device=dev, dtype=dtype),
+        baseline=B,
+        fps=rig.fps,
+    )
