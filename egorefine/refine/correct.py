@@ -1,0 +1,244 @@
+"""Correct a predicted disparity map with a fresh stereo measurement (PAPER.md, loop step 4).
+
+Two fusion rules, chosen by ``fusion``:
+
+* ``"paper"``: exactly the paper's rule. Where both maps are valid and ``|e - s| > gate``
+  (0.5 px), ``e <- e + gain (s - e)`` (gain 0.4); where ``|e - s| <= gate``, ``e`` is kept.
+* ``"kalman"``: a per-pixel scalar Kalman update. ``P`` (the predicted variance, carried and
+  inflated by process noise in :func:`~egorefine.refine.predict.predict_disparity`) and ``R``
+  (the matcher's measurement variance: cost curvature, or 1/12 px^2 for integer quantisation)
+  give the gain ``G = P / (P + R)``; ``e <- e + G (s - e)``, ``P <- (1 - G) P``. Innovations
+  beyond ``kalman_gate`` standard deviations (``|s - e| > k sqrt(P + R)``) are outliers: not
+  fused, counted per pixel, and where a pixel is an outlier ``reset_after`` verifications in a
+  row the estimate is reset to the measurement (``e = s``, ``P = R``).
+
+Both rules: where the prediction is invalid (a hole) and the measurement valid, take the
+measurement (``e = s``, ``P = R``); where the measurement is invalid, keep the prediction
+(disparity, variance and outlier count carried unchanged).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from ..core import check_choice, check_float, check_same_device, check_shape
+from ..core.errors import ValueRangeError
+
+__all__ = ["Correction", "correct_disparity", "CorrectDisparity", "QUANTISATION_VARIANCE"]
+
+# Variance of the rounding error of integer disparities (uniform on [-1/2, 1/2]): 1/12 px^2.
+QUANTISATION_VARIANCE = 1.0 / 12.0
+
+
+class Correction(NamedTuple):
+    """Result of :func:`correct_disparity`, every field ``(B, 1, H, W)``.
+
+    Attributes:
+        disparity: corrected disparity, px.
+        variance: its variance, px^2 (see :func:`correct_disparity` for each rule).
+        valid: bool, ``predicted_valid | measured_valid``.
+        outlier_count: consecutive verifications at which the pixel was gated out (dtype of the
+            ``outlier_count`` passed in, else of ``predicted``); 0 after a fused or reset pixel.
+    """
+
+    disparity: torch.Tensor
+    variance: torch.Tensor
+    valid: torch.Tensor
+    outlier_count: torch.Tensor
+
+
+def _as_bool(x: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+    if x is None:
+        return torch.ones_like(like, dtype=torch.bool)
+    return x if x.dtype == torch.bool else x > 0.5
+
+
+def correct_disparity(
+    predicted: torch.Tensor,
+    measured: torch.Tensor,
+    measured_valid: torch.Tensor | None,
+    fusion: str = "paper",
+    gate: float = 0.5,
+    gain: float = 0.4,
+    predicted_variance: torch.Tensor | None = None,
+    measured_variance: torch.Tensor | None = None,
+    predicted_valid: torch.Tensor | None = None,
+    outlier_count: torch.Tensor | None = None,
+    kalman_gate: float = 3.0,
+    reset_after: int = 2,
+    min_variance: float = 1e-4,
+    prior_variance: float = 1.0,
+) -> Correction:
+    """Fuse the predicted disparity ``e`` with the measured ``s`` (PAPER.md, loop step 4).
+
+    ``fusion="paper"`` (the paper's rule, reproduced exactly):
+
+    * both valid and ``|e - s| > gate``: ``e <- e + gain (s - e)`` and the variance of that fixed-gain
+      blend of two independent estimates, ``(1 - gain)^2 P + gain^2 R``;
+    * both valid and ``|e - s| <= gate``: ``e`` and ``P`` unchanged (the paper's blind spot: errors
+      below the gate are never corrected);
+    * prediction invalid, measurement valid: ``e = s``, ``P = R``;
+    * measurement invalid: ``e``, ``P`` unchanged.
+
+    The outlier count only records, per pixel, consecutive verifications where the gate fired; it does
+    not change the paper's output.
+
+    ``fusion="kalman"``: both valid: innovation ``y = s - e``, ``S = P + R``. If ``|y| > kalman_gate
+    sqrt(S)`` the pixel is an outlier: ``e``, ``P`` kept and its count incremented; once the count
+    reaches ``reset_after`` it is reset (``e = s``, ``P = R``, count 0). Otherwise ``G = P / S``,
+    ``e <- e + G y``, ``P <- (1 - G) P`` and the count is 0. Prediction invalid, measurement valid:
+    ``e = s``, ``P = R``, count 0. Measurement invalid: everything carried. ``P`` is kept
+    ``>= min_variance``.
+
+    Args:
+        predicted: ``(B, 1, H, W)`` predicted disparity ``e``, px.
+        measured: ``(B, 1, H, W)`` measured disparity ``s``, px.
+        measured_valid: ``(B, 1, H, W)`` bool (None: all valid).
+        fusion: ``"paper"`` or ``"kalman"``.
+        gate: px, the paper's gate (0.5).
+        gain: the paper's gain alpha (0.4), in ``(0, 1]``.
+        predicted_variance: ``(B, 1, H, W)`` px^2 (None: ``prior_variance``).
+        measured_variance: ``(B, 1, H, W)`` px^2 from the matcher (None: 1/12, integer quantisation).
+        predicted_valid: ``(B, 1, H, W)`` bool (None: all valid).
+        outlier_count: ``(B, 1, H, W)`` consecutive outlier verifications so far (None: zeros).
+        kalman_gate: gate of the Kalman mode in standard deviations of the innovation.
+        reset_after: consecutive outliers after which a pixel is reset to the measurement (>= 1).
+        min_variance: floor of the variance, px^2.
+        prior_variance: px^2 assumed for the prediction when ``predicted_variance`` is None.
+
+    Returns:
+        :class:`Correction` ``(disparity, variance, valid, outlier_count)``, each ``(B, 1, H, W)``.
+
+    >>> e = torch.tensor([[[[1.0, 2.0]]]])
+    >>> s = torch.tensor([[[[1.4, 3.0]]]])
+    >>> correct_disparity(e, s, None).disparity  # 0.4 <= gate: kept; 1.0 > gate: 2 + 0.4 * 1
+    tensor([[[[1.0000, 2.4000]]]])
+    """
+    dims = check_shape(predicted, ["B", "1", "H", "W"], "predicted")
+    check_float(predicted, "predicted")
+    check_shape(measured, ["B", "1", "H", "W"], "measured", dims)
+    check_float(measured, "measured")
+    for name, t in (
+        ("measured_valid", measured_valid),
+        ("predicted_variance", predicted_variance),
+        ("measured_variance", measured_variance),
+        ("predicted_valid", predicted_valid),
+        ("outlier_count", outlier_count),
+    ):
+        if t is not None:
+            check_shape(t, ["B", "1", "H", "W"], name, dims)
+    check_same_device(
+        predicted,
+        "predicted",
+        measured=measured,
+        measured_valid=measured_valid,
+        predicted_variance=predicted_variance,
+        measured_variance=measured_variance,
+        predicted_valid=predicted_valid,
+        outlier_count=outlier_count,
+    )
+    check_choice(fusion, ["paper", "kalman"], "fusion")
+    if not gate >= 0:
+        raise ValueRangeError(f"gate: must be >= 0, got {gate}")
+    if not 0 < gain <= 1:
+        raise ValueRangeError(f"gain: must be in (0, 1], got {gain}")
+    if not kalman_gate > 0 or reset_after < 1 or not min_variance > 0 or not prior_variance > 0:
+        raise ValueRangeError(
+            "kalman_gate, min_variance and prior_variance must be > 0 and reset_after >= 1, got "
+            f"{kalman_gate}, {min_variance}, {prior_variance}, {reset_after}"
+        )
+
+    e, s = predicted, measured.to(predicted.dtype)
+    m_ok = _as_bool(measured_valid, e)
+    p_ok = _as_bool(predicted_valid, e)
+    P = torch.full_like(e, prior_variance) if predicted_variance is None else predicted_variance.to(e.dtype)
+    R = torch.full_like(e, QUANTISATION_VARIANCE) if measured_variance is None else measured_variance.to(e.dtype)
+    P, R = P.clamp_min(min_variance), R.clamp_min(min_variance)
+    count = torch.zeros_like(e) if outlier_count is None else outlier_count
+    zero = torch.zeros_like(count)
+
+    both = m_ok & p_ok
+    take = m_ok & ~p_ok  # a hole in the prediction: take the measurement
+    innovation = s - e
+
+    if fusion == "paper":
+        fire = both & (innovation.abs() > gate)
+        e_new = torch.where(fire, e + gain * innovation, e)  # PAPER.md step 4: e <- e + alpha (s - e)
+        P_new = torch.where(fire, (1 - gain) ** 2 * P + gain**2 * R, P)
+        count_new = torch.where(fire, count + 1, torch.where(both, zero, count))
+    else:
+        S = P + R  # innovation variance (both > 0 after the clamp)
+        outlier = both & (innovation.abs() > kalman_gate * S.sqrt())
+        count_out = count + 1
+        reset = outlier & (count_out >= reset_after)
+        fuse = both & ~outlier
+        G = P / S
+        e_new = torch.where(fuse, e + G * innovation, e)
+        P_new = torch.where(fuse, (1 - G) * P, P)
+        e_new = torch.where(reset, s, e_new)
+        P_new = torch.where(reset, R, P_new)
+        count_new = torch.where(outlier & ~reset, count_out, torch.where(both, zero, count))
+
+    e_new = torch.where(take, s, e_new)
+    P_new = torch.where(take, R, P_new).clamp_min(min_variance)
+    count_new = torch.where(take, zero, count_new)
+    return Correction(e_new, P_new, m_ok | p_ok, count_new)
+
+
+class CorrectDisparity(nn.Module):
+    """Module form of :func:`correct_disparity`: stores the settings, ``forward`` calls the function.
+
+    >>> cor = CorrectDisparity(fusion="kalman")(torch.ones(1, 1, 2, 3), torch.ones(1, 1, 2, 3), None)
+    >>> cor.disparity.shape
+    torch.Size([1, 1, 2, 3])
+    """
+
+    def __init__(
+        self,
+        fusion: str = "paper",
+        gate: float = 0.5,
+        gain: float = 0.4,
+        kalman_gate: float = 3.0,
+        reset_after: int = 2,
+        min_variance: float = 1e-4,
+        prior_variance: float = 1.0,
+    ) -> None:
+        super().__init__()
+        check_choice(fusion, ["paper", "kalman"], "fusion")
+        self.fusion = fusion
+        self.gate = gate
+        self.gain = gain
+        self.kalman_gate = kalman_gate
+        self.reset_after = reset_after
+        self.min_variance = min_variance
+        self.prior_variance = prior_variance
+
+    def forward(
+        self,
+        predicted: torch.Tensor,
+        measured: torch.Tensor,
+        measured_valid: torch.Tensor | None,
+        predicted_variance: torch.Tensor | None = None,
+        measured_variance: torch.Tensor | None = None,
+        predicted_valid: torch.Tensor | None = None,
+        outlier_count: torch.Tensor | None = None,
+    ) -> Correction:
+        return correct_disparity(
+            predicted,
+            measured,
+            measured_valid,
+            fusion=self.fusion,
+            gate=self.gate,
+            gain=self.gain,
+            predicted_variance=predicted_variance,
+            measured_variance=measured_variance,
+            predicted_valid=predicted_valid,
+            outlier_count=outlier_count,
+            kalman_gate=self.kalman_gate,
+            reset_after=self.reset_after,
+            min_variance=self.min_variance,
+            prior_variance=self.prior_variance,
+        )
