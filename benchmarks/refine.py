@@ -40,9 +40,9 @@ from egorefine.stereo import block_matching  # noqa: E402
 # (preset, scene, motion, max_disparity): two scenes/motions per rig.
 SEQUENCES = [
     ("paper", "corridor", "forward", 64),
-    ("paper", "room", "turn", 64),
+    ("paper", "hall", "turn", 64),
     ("kitti", "street", "forward", 128),
-    ("kitti", "street", "turn", 128),
+    ("kitti", "hall", "shaky", 128),
 ]
 
 
