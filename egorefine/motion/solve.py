@@ -11,7 +11,8 @@ Three solvers share one entry point, :func:`solve_ego_motion`:
 ``"robust"``
     The same linear model inside a batched RANSAC (MSAC scoring): all hypotheses of all
     batch items, each from a minimal set of 3 features, are solved as one batched
-    normal-equation solve; the best per item is refitted on its inliers (twice). The random
+    normal-equation solve; the best per item is refitted on its inliers (three times; once when
+    "exact" follows, whose own kernel re-admits or drops features anyway). The random
     draws come from a seeded generator and are shared by all batch items (each item maps
     them onto its own valid features), so item ``b`` of a batch gives exactly what it gives
     alone.
@@ -239,8 +240,9 @@ def _ransac(
     threshold: float,
     seed: int,
     damping: float,
+    refits: int = 2,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched MSAC over minimal sets of 3 features, then two refits on the inliers.
+    """Batched MSAC over minimal sets of 3 features, then ``refits`` refits on the inliers.
 
     Returns the twist ``(B, 6)`` and the inlier weights ``(B, N)`` (input weight on inliers).
     """
@@ -264,7 +266,7 @@ def _ransac(
     cost = (w[..., None] * r2.clamp(max=threshold**2)).sum(1)  # MSAC: truncated squared error
     best = cost.argmin(1)  # (B,)
     inl = valid & (r2.gather(2, best[:, None, None].expand(-1, N, 1))[..., 0] < threshold**2)
-    for _ in range(2):
+    for _ in range(refits - 1):
         x, _ = _linear_fit(A, b, w * inl, damping)
         inl = valid & (_linear_residual(A, b, x) < threshold)
     x, _ = _linear_fit(A, b, w * inl, damping)
@@ -317,6 +319,16 @@ def _irls_system(S: torch.Tensor, gate: torch.Tensor, loss: str, scale: float) -
     return G[:, :6, :6], G[:, :6, 6]
 
 
+def _se3_generators(like: torch.Tensor) -> torch.Tensor:
+    """The 6 generators of se(3) as ``(6, 16)``: ``delta @ G`` is the 4x4 twist matrix of ``delta = (rho, phi)``."""
+    G = torch.zeros(6, 4, 4, dtype=like.dtype, device=like.device)
+    G[0, 0, 3] = G[1, 1, 3] = G[2, 2, 3] = 1.0
+    G[3, 2, 1], G[3, 1, 2] = 1.0, -1.0
+    G[4, 0, 2], G[4, 2, 0] = 1.0, -1.0
+    G[5, 1, 0], G[5, 0, 1] = 1.0, -1.0
+    return G.view(6, 16)
+
+
 def _levenberg_marquardt(
     motion: torch.Tensor,
     rays: torch.Tensor,
@@ -332,13 +344,16 @@ def _levenberg_marquardt(
     B = motion.shape[0]
     lam = torch.full((B,), 1e-4, dtype=motion.dtype, device=motion.device)
     S = _reprojection(motion, rays, target, K)
+    G = _se3_generators(motion)
     for gate, loss, iters in stages:
         cost = (gate * robust_loss(S[..., _RN], loss, scale)).sum(1)
         for _ in range(iters):
             # Jacobians -> weighted normal equations (IRLS) -> damped solve -> retraction.
             H, g = _irls_system(S, gate, loss, scale)
             delta, _ = _solve_normal(H, -g, lam)
-            trial = se3_exp(delta) @ motion  # left-multiplied increment
+            # Left-multiplied increment exp(delta) (the same map as geometry.se3_exp; torch's matrix
+            # exponential of the 4x4 twist matrix is one batched call, half the time for a 6-vector).
+            trial = torch.linalg.matrix_exp((delta @ G).view(B, 4, 4)) @ motion
             S_new = _reprojection(trial, rays, target, K)
             cost_new = (gate * robust_loss(S_new[..., _RN], loss, scale)).sum(1)
             # Keep the step only where that item's robust cost drops; adapt its damping.
@@ -454,7 +469,9 @@ def solve_ego_motion(
         w_out = w
         rms_r = _linear_residual(A, b, twist)
     else:
-        twist, w_in = _ransac(A, b, w, ransac_hypotheses, ransac_threshold, seed, damping)
+        # "exact" refines anyway (and re-admits inliers with its own kernel): one refit is enough there.
+        refits = 3 if method == "robust" else 1
+        twist, w_in = _ransac(A, b, w, ransac_hypotheses, ransac_threshold, seed, damping, refits)
         if method == "robust":
             w_out = w_in
             Hs = _jacobi_scaled(_normal_equations(A, b, w_in.repeat_interleave(2, dim=1))[0])[0]
