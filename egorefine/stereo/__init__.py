@@ -1,0 +1,20 @@
+"""Dense stereo matching: cost volumes (SAD, ZNCC, census), box or SGM aggregation,
+winner-takes-all with sub-pixel fit or soft-argmin, and left-right / uniqueness / texture checks."""
+
+from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
+from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, match_stereo
+from .sgm import sgm_aggregate
+
+__all__ = [
+    "block_matching",
+    "match_stereo",
+    "BlockMatching",
+    "StereoOutput",
+    "cost_volume",
+    "sgm_aggregate",
+    "prefilter_xsobel",
+    "census_transform",
+    "COSTS",
+    "INVALID_COST",
+    "INVALID_VARIANCE",
+]

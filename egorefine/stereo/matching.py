@@ -1,0 +1,309 @@
+"""Block matching: cost volume -> (box | SGM) aggregation -> winner-takes-all or soft-argmin
+-> sub-pixel fit -> validity checks (left-right, uniqueness, texture).
+
+The box-aggregated path works on strips of rows so that memory stays at a few
+``(B, D, h, W)`` strips whatever the image size; SGM needs the whole volume (its vertical
+paths cross every row) and holds about four ``(B, D, H, W)`` volumes.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from ..core import DTypeError, ValueRangeError, check_choice, check_finite, check_float, check_same_device, check_shape
+from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume, to_gray
+from .sgm import sgm_aggregate
+
+__all__ = ["StereoOutput", "block_matching", "match_stereo", "BlockMatching", "INVALID_VARIANCE"]
+
+AGGREGATIONS = ("box", "sgm")
+SUBPIXEL_FITS = ("parabola", "equiangular")
+# Variance (px^2) reported where the matcher gives no measurement.
+INVALID_VARIANCE = 1.0e4
+_QUANTISATION_VARIANCE = 1.0 / 12.0
+# SGM penalties per cost, in that cost's units (window-mean SAD of the prefiltered image,
+# 1 - ZNCC, mean Hamming distance).
+_SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (0.5, 3.0)}
+_TEMPERATURES = {"sad": 0.008, "zncc": 0.05, "census": 0.2}
+_STRIP_ELEMENTS = 1 << 19  # ~2 MB of float32 per strip volume: stays in cache
+
+
+class StereoOutput(NamedTuple):
+    """Result of :func:`match_stereo`.
+
+    Attributes:
+        disparity: ``(B, 1, H, W)`` left-view disparity in px, 0 where invalid.
+        valid: ``(B, 1, H, W)`` bool, the pixels that passed every check.
+        variance: ``(B, 1, H, W)`` measurement variance in px^2 (>= 1/12; INVALID_VARIANCE where invalid).
+    """
+
+    disparity: torch.Tensor
+    valid: torch.Tensor
+    variance: torch.Tensor
+
+
+def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int,
+                  cost: str, aggregation: str, subpixel_fit: str, sgm_paths: int, temperature: float | None,
+                  differentiable: bool) -> None:
+    dims = check_shape(left, ["B", "1|3", "H", "W"], "left")
+    check_shape(right, ["B", "1|3", "H", "W"], "right", dims)
+    check_same_device(left, "left", right=right)
+    check_float(left, "left")
+    check_float(right, "right")
+    check_finite(left, "left")
+    check_finite(right, "right")
+    width = dims["W"]
+    for name, value in (("max_disparity", max_disparity), ("min_disparity", min_disparity),
+                        ("block_size", block_size), ("sgm_paths", sgm_paths)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise DTypeError(f"{name}: expected an int, got {type(value).__name__}")
+    if not 0 < max_disparity < width:
+        raise ValueRangeError(f"max_disparity: expected 0 < max_disparity < width={width}, got {max_disparity}")
+    if not 0 <= min_disparity < max_disparity:
+        raise ValueRangeError(
+            f"min_disparity: expected 0 <= min_disparity < max_disparity={max_disparity}, got {min_disparity}")
+    if block_size < 1 or block_size % 2 == 0 or block_size > min(dims["H"], width):
+        raise ValueRangeError(f"block_size: expected an odd size in [1, min(H, W)], got {block_size}")
+    check_choice(cost, COSTS, "cost")
+    check_choice(aggregation, AGGREGATIONS, "aggregation")
+    check_choice(subpixel_fit, SUBPIXEL_FITS, "subpixel_fit")
+    if sgm_paths not in (4, 8):
+        raise ValueRangeError(f"sgm_paths: expected 4 or 8, got {sgm_paths}")
+    if differentiable and cost == "census":
+        raise ValueRangeError("cost: 'census' has no gradient; use 'sad' or 'zncc' with differentiable=True")
+    if temperature is not None and not temperature > 0:
+        raise ValueRangeError(f"temperature: expected > 0, got {temperature}")
+
+
+def _gather(vol: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    return torch.gather(vol, 1, index)
+
+
+def _index_bits(num: int) -> int:
+    return max(1, (num - 1).bit_length())
+
+
+def _encode(vol: torch.Tensor) -> torch.Tensor:
+    """Non-negative float32 costs with their disparity index written into the low mantissa bits.
+
+    For non-negative IEEE floats the integer order is the float order, so one fast ``amin``
+    over the disparity axis returns the winner's (slightly rounded) cost *and* its index
+    (ties go to the lower index); ``argmin`` along a non-inner axis is several times slower.
+    Costs lose ``log2(D)`` of their 24 mantissa bits (relative error < 2**-16 for D <= 128),
+    which only matters for near-ties. The result is a new int32 tensor.
+    """
+    num = vol.shape[1]
+    bits = _index_bits(num)
+    index = torch.arange(num, device=vol.device, dtype=torch.int32).view(1, num, 1, 1)
+    as_int = vol.detach().to(torch.float32).clamp_min(0).view(torch.int32)
+    return torch.bitwise_and(as_int, -(1 << bits)).bitwise_or_(index)
+
+
+def _decode_index(code: torch.Tensor, num: int) -> torch.Tensor:
+    return torch.bitwise_and(code, (1 << _index_bits(num)) - 1).long()
+
+
+def _right_view_index(code: torch.Tensor, max_d: int) -> torch.Tensor:
+    """Winner of the right view from the encoded left volume (reversed order) by diagonal
+    re-indexing: cost_right(xr, d) = cost_left(xr + d, d). Returns the reversed index ``(B, 1, h, W)``."""
+    b, num, h, w = code.shape
+    big = torch.tensor(INVALID_COST, dtype=torch.float32).view(torch.int32).item()
+    padded = torch.nn.functional.pad(code, (0, max_d), value=big)
+    sb, sj, sh, sw = padded.stride()
+    # entry [b, j, y, xr] = padded[b, j, y, xr + max_d - 1 - j]
+    diag = padded.as_strided((b, num, h, w), (sb, sj - sw, sh, sw), padded.storage_offset() + (max_d - 1) * sw)
+    return _decode_index(diag.amin(dim=1, keepdim=True), num)
+
+
+def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Disparity, validity and variance of a strip from its (reversed-order) aggregated cost ``(B, D, h, W)``.
+
+    ``vol`` holds window sums; ``opts["scale"]`` (= block**2) converts them to window means.
+    """
+    num = vol.shape[1]
+    scale = opts["scale"]
+    code = _encode(vol)
+    best = code.amin(dim=1, keepdim=True)
+    j = _decode_index(best, num)
+    d_int = (max_d - 1 - j).to(vol.dtype)
+    jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
+    c_best = _gather(vol, j)
+    c0 = c_best.detach()
+    c_plus, c_minus = _gather(vol, jm), _gather(vol, jp)  # reversed order: j-1 is d+1
+    interior = (j > 0) & (j < num - 1) & (c_plus.detach() < INVALID_COST / 2) & (c_minus.detach() < INVALID_COST / 2)
+    curvature = c_minus - 2 * c_best + c_plus
+    eps = torch.finfo(vol.dtype).eps * 16 * scale
+    if opts["subpixel_fit"] == "parabola":
+        denom = 2 * curvature
+    else:  # equiangular (V-shaped) fit, the natural model for SAD-like costs
+        denom = 2 * (torch.maximum(c_minus, c_plus) - c_best)
+    # clamp before dividing: a flat or non-interior minimum has no defined offset
+    offset = ((c_minus - c_plus) / denom.clamp_min(eps)).clamp(-0.5, 0.5)
+    offset = torch.where(interior, offset, torch.zeros_like(offset))
+    if opts["differentiable"]:
+        weights = torch.softmax(-vol / (opts["temperature"] * scale), dim=1)
+        values = (max_d - 1 - torch.arange(num, device=vol.device, dtype=vol.dtype)).view(1, num, 1, 1)
+        disparity = (weights * values).sum(dim=1, keepdim=True)
+    elif opts["subpixel"]:
+        disparity = d_int + offset
+    else:
+        disparity = d_int + 0 * c_best  # keeps the graph (zero gradient) for a uniform return
+    # validity checks on the detached costs. A winner at the end of the feasible range (the
+    # search limit, or the last candidate still inside the right image) may be a truncated
+    # minimum whose truth lies beyond: rejected (d = 0 with min_disparity = 0 is a true end).
+    valid = (c0 < INVALID_COST / 2) & (j > 0) & (c_plus.detach() < INVALID_COST / 2)
+    if opts["min_disparity"] > 0:
+        valid &= j < num - 1
+    if opts["lr_check"]:
+        jr = _right_view_index(code, max_d)
+        x = torch.arange(vol.shape[-1], device=vol.device).view(1, 1, 1, -1)
+        d_left = max_d - 1 - j  # integer disparity of the left winner
+        xr = (x - d_left).clamp(0, vol.shape[-1] - 1)
+        d_right = max_d - 1 - torch.gather(jr, 3, xr)
+        valid &= (d_right - d_left).abs() <= opts["lr_threshold"]
+    if opts["uniqueness_ratio"] > 0:
+        # knock out the winner and its two neighbours, then the best of the rest
+        inf = torch.tensor(float("inf"), dtype=torch.float32, device=vol.device).view(torch.int32)
+        for nb in (jm, j, jp):
+            code.scatter_(1, nb, inf.expand_as(best))
+        second = code.amin(dim=1, keepdim=True).view(torch.float32)
+        valid &= second > c0 * (1 + opts["uniqueness_ratio"])
+    # variance: quantisation floor plus the spread of a noisy minimum, larger when the
+    # minimum is shallow (small curvature) relative to its own cost level (heuristic)
+    kd = curvature.detach().clamp_min(0)
+    variance = _QUANTISATION_VARIANCE + 0.25 * ((c0 + opts["cost_floor"] * scale) / (kd + eps)) ** 2
+    variance = torch.where(interior, variance.clamp_max(INVALID_VARIANCE), torch.ones_like(variance))
+    return disparity, valid, variance
+
+
+def match_stereo(
+    left: torch.Tensor,
+    right: torch.Tensor,
+    max_disparity: int,
+    min_disparity: int = 0,
+    block_size: int = 9,
+    cost: str = "sad",
+    aggregation: str = "box",
+    subpixel: bool = True,
+    subpixel_fit: str = "equiangular",
+    lr_check: bool = True,
+    lr_threshold: int = 1,
+    uniqueness_ratio: float = 0.15,
+    texture_threshold: float = 0.004,
+    prefilter: bool = True,
+    prefilter_cap: float = 31.0 / 255.0,
+    census_window: int = 5,
+    sgm_p1: float | None = None,
+    sgm_p2: float | None = None,
+    sgm_paths: int = 4,
+    differentiable: bool = False,
+    temperature: float | None = None,
+) -> StereoOutput:
+    """Dense stereo matching of a rectified pair; disparity, validity and per-pixel variance.
+
+    Args:
+        left, right: ``(B, 1|3, H, W)`` float images in [0, 1] (colour is converted to grey).
+        max_disparity: candidates are ``min_disparity <= d < max_disparity`` (``0 < max_disparity < W``).
+        min_disparity: smallest candidate (>= 0).
+        block_size: odd window size of the cost aggregation.
+        cost: ``"sad"`` (on the x-Sobel prefiltered image, as OpenCV's BM), ``"zncc"`` or ``"census"``.
+        aggregation: ``"box"`` (block matching) or ``"sgm"`` (semi-global, after the box mean).
+        subpixel: refine the winner with a fit through its two neighbours.
+        subpixel_fit: ``"parabola"`` or ``"equiangular"``.
+        lr_check: left-right consistency (right winners from the same volume), tolerance ``lr_threshold`` px.
+        uniqueness_ratio: reject when a candidate beyond +-1 px of the winner costs less than
+            ``(1 + ratio)`` times the winner's (0 disables).
+        texture_threshold: reject windows whose mean ``|x-Sobel|`` (clipped, [0,1] grey units) is below it.
+        prefilter, prefilter_cap: x-Sobel prefilter of the SAD cost and its clip level.
+        census_window: census window (3, 5 or 7).
+        sgm_p1, sgm_p2: SGM penalties in cost units (None: per-cost defaults); ``sgm_paths`` 4 or 8.
+        differentiable: disparity by soft-argmin over ``-cost / temperature`` (gradients reach
+            both images); the checks still use the hard winner.
+        temperature: soft-argmin temperature in cost units (None: per-cost default).
+
+    Returns:
+        :class:`StereoOutput` ``(disparity, valid, variance)``, each ``(B, 1, H, W)``.
+
+    Raises:
+        ShapeError, DTypeError, DeviceError, ValueRangeError: bad input, naming the argument.
+
+    >>> out = match_stereo(torch.rand(2, 1, 16, 24), torch.rand(2, 1, 16, 24), 8, block_size=5)
+    >>> out.disparity.shape, out.valid.dtype, out.variance.shape
+    (torch.Size([2, 1, 16, 24]), torch.bool, torch.Size([2, 1, 16, 24]))
+    """
+    _check_inputs(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel_fit, sgm_paths,
+                  temperature, differentiable)
+    grey_l, grey_r = to_gray(left), to_gray(right)
+    feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
+    b, _, h, w = grey_l.shape
+    num = max_disparity - min_disparity
+    opts = {
+        "subpixel": subpixel, "subpixel_fit": subpixel_fit, "lr_check": lr_check, "lr_threshold": lr_threshold,
+        "uniqueness_ratio": uniqueness_ratio, "differentiable": differentiable,
+        "temperature": temperature if temperature is not None else _TEMPERATURES[cost],
+        "cost_floor": {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}[cost],
+        "scale": float(block_size * block_size),
+        "min_disparity": min_disparity,
+    }
+    # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
+    texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
+    textured = texture >= texture_threshold
+
+    parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    if aggregation == "sgm":
+        vol = strip_volume(feat, 0, h, min_disparity)
+        p1, p2 = _SGM_PENALTIES[cost]
+        p1 = p1 if sgm_p1 is None else sgm_p1
+        p2 = p2 if sgm_p2 is None else sgm_p2
+        vol = sgm_aggregate(vol, p1 * opts["scale"], p2 * opts["scale"], sgm_paths)
+        rows = max(1, _STRIP_ELEMENTS // max(1, b * num * w))
+        for y0 in range(0, h, rows):
+            parts.append(_select(vol[:, :, y0 : y0 + rows], max_disparity, opts))
+    else:
+        rows = max(1, _STRIP_ELEMENTS // max(1, b * num * (w + block_size)))
+        for y0 in range(0, h, rows):
+            y1 = min(h, y0 + rows)
+            parts.append(_select(strip_volume(feat, y0, y1, min_disparity), max_disparity, opts))
+    disparity = torch.cat([p[0] for p in parts], dim=2)
+    valid = torch.cat([p[1] for p in parts], dim=2) & textured
+    variance = torch.cat([p[2] for p in parts], dim=2)
+    disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
+    variance = torch.where(valid, variance, torch.full_like(variance, INVALID_VARIANCE))
+    return StereoOutput(disparity, valid, variance)
+
+
+def block_matching(left: torch.Tensor, right: torch.Tensor, max_disparity: int, **kwargs) -> tuple[
+        torch.Tensor, torch.Tensor]:
+    """Disparity and validity of a rectified pair; see :func:`match_stereo` for every keyword.
+
+    Returns:
+        ``(disparity, valid)``: ``(B, 1, H, W)`` float disparity in px (0 where invalid) and bool mask.
+
+    >>> d, v = block_matching(torch.rand(1, 3, 16, 24), torch.rand(1, 3, 16, 24), 8, block_size=5)
+    >>> d.shape, v.shape
+    (torch.Size([1, 1, 16, 24]), torch.Size([1, 1, 16, 24]))
+    """
+    out = match_stereo(left, right, max_disparity, **kwargs)
+    return out.disparity, out.valid
+
+
+class BlockMatching(nn.Module):
+    """Module form of :func:`block_matching`: stores the settings, ``forward(left, right) -> (disparity, valid)``.
+
+    >>> BlockMatching(8, block_size=5)(torch.rand(1, 1, 16, 24), torch.rand(1, 1, 16, 24))[0].shape
+    torch.Size([1, 1, 16, 24])
+    """
+
+    def __init__(self, max_disparity: int, **kwargs) -> None:
+        super().__init__()
+        self.max_disparity = max_disparity
+        self.kwargs = kwargs
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return block_matching(left, right, self.max_disparity, **self.kwargs)
+
+    def extra_repr(self) -> str:
+        return ", ".join([f"max_disparity={self.max_disparity}"] + [f"{k}={v!r}" for k, v in self.kwargs.items()])
