@@ -1,0 +1,357 @@
+"""Corner detection: gradient response, non-maximum suppression, grid bucketing, sub-pixel peaks.
+
+The paper (PAPER.md, "Features") uses a fast gradient-based keypoint detector and tracks the
+keypoints frame to frame. Here the response is kornia's Shi-Tomasi (``gftt_response``) or
+Harris (``harris_response``) map; local maxima are kept by a max-pool comparison; an image
+grid spreads the keypoints (each cell gives its best corner before any cell gives its
+second best); the peak is refined to sub-pixel precision by a quadratic fit of the response
+over its 3x3 neighbourhood. The output always has ``max_features`` slots: ``(B, N, 2)``
+positions and ``(B, N)`` weights that are 1 for a real keypoint and 0 for an empty slot,
+whose position is (0, 0). A black or textureless image gives no keypoints (all weights 0).
+
+:func:`replenish` keeps live tracks in their slots and fills the empty slots with fresh,
+well separated detections; a tracker calls it when the live count drops ("detection re-runs
+only when tracks thin out").
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from kornia.color import rgb_to_grayscale
+from kornia.feature import gftt_response, harris_response
+
+from ..core import (
+    ValueRangeError,
+    check_choice,
+    check_finite,
+    check_float,
+    check_image,
+    check_same_device,
+    check_shape,
+    eps_like,
+)
+
+__all__ = ["detect", "Detector", "replenish", "corner_response"]
+
+_RESPONSES = ("gftt", "harris")
+
+
+def _to_gray(image: torch.Tensor) -> torch.Tensor:
+    return rgb_to_grayscale(image) if image.shape[1] == 3 else image
+
+
+def corner_response(image: torch.Tensor, response: str = "gftt", k: float = 0.04) -> torch.Tensor:
+    """Corner strength of every pixel, in units of squared intensity gradient.
+
+    ``"gftt"`` is the smaller eigenvalue of the structure tensor (Shi-Tomasi); ``"harris"``
+    is ``det - k * trace^2``, returned as ``sign(R) * sqrt(|R|)`` so that both share one unit
+    and one absolute threshold. Gradients are kornia's normalised Sobel, the structure
+    tensor is smoothed with kornia's 7x7 Gaussian (sigma 1).
+
+    Args:
+        image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image in [0, 1].
+        response: ``"gftt"`` or ``"harris"``.
+        k: the Harris constant.
+
+    Returns:
+        ``(B, 1, H, W)`` response.
+
+    >>> corner_response(torch.rand(2, 3, 16, 20)).shape
+    torch.Size([2, 1, 16, 20])
+    """
+    check_image(image, "image")
+    check_choice(response, _RESPONSES, "response")
+    gray = _to_gray(image)
+    if response == "gftt":
+        return gftt_response(gray)
+    r = harris_response(gray, k=k)
+    return torch.sign(r) * r.abs().sqrt()
+
+
+def _subpixel_offsets(resp: torch.Tensor, ix: torch.Tensor, iy: torch.Tensor) -> torch.Tensor:
+    """Quadratic fit of ``resp`` (B, H, W) over the 3x3 neighbourhoods of integer peaks (B, N).
+
+    Fits ``r(u) = r0 + g.u + u^T H u / 2`` by central differences and returns the vertex
+    offset ``-H^-1 g`` (B, N, 2), clamped to one pixel. Where the fitted Hessian is not
+    negative definite, each axis falls back to its own 1-D parabola (or to no offset).
+    """
+    b, h, w = resp.shape
+    flat = resp.reshape(b, h * w)
+
+    def at(dx: int, dy: int) -> torch.Tensor:
+        xx = (ix + dx).clamp(0, w - 1)
+        yy = (iy + dy).clamp(0, h - 1)
+        return flat.gather(1, yy * w + xx)
+
+    c = at(0, 0)
+    gx = 0.5 * (at(1, 0) - at(-1, 0))
+    gy = 0.5 * (at(0, 1) - at(0, -1))
+    hxx = at(1, 0) - 2 * c + at(-1, 0)
+    hyy = at(0, 1) - 2 * c + at(0, -1)
+    hxy = 0.25 * (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1))
+    eps = eps_like(resp)
+    det = hxx * hyy - hxy * hxy
+    definite = (hxx < 0) & (det > eps * (hxx * hxx + hyy * hyy + eps))
+    det_safe = torch.where(definite, det, torch.ones_like(det))
+    ox2 = -(hyy * gx - hxy * gy) / det_safe
+    oy2 = -(hxx * gy - hxy * gx) / det_safe
+    # 1-D fallbacks: the parabola through three samples along one axis.
+    hxx_safe = torch.where(hxx < 0, hxx, -torch.ones_like(hxx))
+    hyy_safe = torch.where(hyy < 0, hyy, -torch.ones_like(hyy))
+    ox1 = torch.where(hxx < 0, -gx / hxx_safe, torch.zeros_like(gx))
+    oy1 = torch.where(hyy < 0, -gy / hyy_safe, torch.zeros_like(gy))
+    ox = torch.where(definite, ox2, ox1).clamp(-1.0, 1.0)
+    oy = torch.where(definite, oy2, oy1).clamp(-1.0, 1.0)
+    return torch.stack([ox, oy], dim=-1)
+
+
+def _check_settings(max_features: int, grid: tuple[int, int], nms_radius: int, border: int) -> None:
+    if not isinstance(max_features, int) or max_features < 1:
+        raise ValueRangeError(f"max_features: expected an int >= 1, got {max_features!r}")
+    if len(grid) != 2 or any((not isinstance(g, int)) or g < 1 for g in grid):
+        raise ValueRangeError(f"grid: expected two ints >= 1 (rows, cols), got {grid!r}")
+    if not isinstance(nms_radius, int) or nms_radius < 0:
+        raise ValueRangeError(f"nms_radius: expected an int >= 0, got {nms_radius!r}")
+    if not isinstance(border, int) or border < 0:
+        raise ValueRangeError(f"border: expected an int >= 0, got {border!r}")
+
+
+def detect(
+    image: torch.Tensor,
+    max_features: int = 500,
+    grid: tuple[int, int] = (8, 8),
+    response: str = "gftt",
+    nms_radius: int = 3,
+    quality: float = 0.01,
+    min_response: float = 1e-4,
+    border: int = 8,
+    subpixel: bool = True,
+    k: float = 0.04,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Detect up to ``max_features`` corners per image, spread over a grid, at sub-pixel positions.
+
+    A pixel is a candidate when its response (:func:`corner_response`) is the maximum of its
+    ``(2 * nms_radius + 1)^2`` neighbourhood, at least ``min_response`` (absolute: a black or
+    flat image has none) and at least ``quality`` times the image's strongest response, and it
+    lies ``border`` pixels or more inside the image. The image is cut into ``grid`` cells;
+    candidates are taken round-robin over the cells (each cell's best, then each cell's
+    second best, ...; ties broken by response), so textured cells fill the slots that
+    textureless cells leave empty. Positions are refined by a 2-D quadratic fit of the
+    response (pixel centres at integer coordinates).
+
+    Selection is discrete, so the outputs carry no gradient.
+
+    Args:
+        image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image in [0, 1].
+        max_features: the number of slots N.
+        grid: (rows, cols) of the bucketing grid.
+        response: ``"gftt"`` (Shi-Tomasi) or ``"harris"``.
+        nms_radius: radius of the non-maximum suppression window.
+        quality: relative threshold, a fraction of each image's maximum response.
+        min_response: absolute threshold in squared-gradient units (kornia's Sobel of [0, 1] images).
+        border: keypoints closer than this to the image edge are dropped.
+        subpixel: refine positions by the quadratic fit.
+        k: the Harris constant (``response="harris"`` only).
+
+    Returns:
+        keypoints ``(B, N, 2)`` as (x, y) pixels, and weights ``(B, N)`` in {0, 1}; empty slots
+        are at (0, 0) with weight 0. Real keypoints come first, in selection order.
+
+    >>> kp, w = detect(torch.rand(2, 1, 64, 80), max_features=50, grid=(2, 2))
+    >>> kp.shape, w.shape
+    (torch.Size([2, 50, 2]), torch.Size([2, 50]))
+    """
+    check_image(image, "image")
+    check_choice(response, _RESPONSES, "response")
+    _check_settings(max_features, tuple(grid), nms_radius, border)
+    with torch.no_grad():
+        return _detect(image, max_features, tuple(grid), response, nms_radius, quality, min_response, border,
+                       subpixel, k)
+
+
+def _detect(
+    image: torch.Tensor,
+    n: int,
+    grid: tuple[int, int],
+    response: str,
+    nms_radius: int,
+    quality: float,
+    min_response: float,
+    border: int,
+    subpixel: bool,
+    k: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    b, _, h, w = image.shape
+    resp = corner_response(image, response, k)  # (B, 1, H, W)
+    # Non-maximum suppression by comparison with a max-pooled copy.
+    pooled = F.max_pool2d(resp, 2 * nms_radius + 1, stride=1, padding=nms_radius)
+    peak_max = resp.flatten(1).amax(dim=1).view(b, 1, 1, 1)
+    threshold = torch.clamp(peak_max * quality, min=min_response)
+    keep = (resp >= pooled) & (resp >= threshold)
+    inner = torch.zeros(h, w, dtype=torch.bool, device=image.device)
+    inner[border : h - border, border : w - border] = True
+    keep = keep & inner
+    # Normalised strength in [0, 0.5]: a tie-breaker that never outranks a round.
+    strength = 0.5 * resp / peak_max.clamp_min(eps_like(resp))
+
+    gy, gx = grid
+    ch, cw = math.ceil(h / gy), math.ceil(w / gx)
+    pad_h, pad_w = gy * ch - h, gx * cw - w
+    invalid = -float(n + 2)
+    score = torch.where(keep, strength, torch.full_like(strength, invalid))
+    score = F.pad(score, (0, pad_w, 0, pad_h), value=invalid)  # (B, 1, gy*ch, gx*cw)
+    cells = score.view(b, gy, ch, gx, cw).permute(0, 1, 3, 2, 4).reshape(b, gy * gx, ch * cw)
+    kc = min(ch * cw, n)
+    cell_val, cell_idx = cells.topk(kc, dim=2)  # sorted, best first in each cell
+    rank = torch.arange(kc, device=image.device, dtype=resp.dtype).view(1, 1, kc)
+    # Round-robin key: every cell's r-th best outranks any cell's (r+1)-th best.
+    key = torch.where(cell_val > invalid, cell_val - rank, torch.full_like(cell_val, invalid))
+    key = key.reshape(b, gy * gx * kc)
+    cell_of = torch.arange(gy * gx, device=image.device).view(1, gy * gx, 1).expand(b, gy * gx, kc).reshape(b, -1)
+    within = cell_idx.reshape(b, -1)
+    if key.shape[1] < n:  # fewer pixels than slots: pad with invalid candidates
+        extra = n - key.shape[1]
+        key = F.pad(key, (0, extra), value=invalid)
+        cell_of = F.pad(cell_of, (0, extra))
+        within = F.pad(within, (0, extra))
+    top_key, top = key.topk(n, dim=1)
+    valid = top_key > invalid
+    cell = cell_of.gather(1, top)
+    pos = within.gather(1, top)
+    iy = (cell // gx) * ch + pos // cw
+    ix = (cell % gx) * cw + pos % cw
+    # Invalid slots may point into the padding: clamp so that the gathers below stay in range.
+    ix = torch.where(valid, ix, torch.zeros_like(ix)).clamp(0, w - 1)
+    iy = torch.where(valid, iy, torch.zeros_like(iy)).clamp(0, h - 1)
+    kp = torch.stack([ix, iy], dim=-1).to(resp.dtype)
+    if subpixel:
+        kp = kp + _subpixel_offsets(resp[:, 0], ix, iy)
+    weights = valid.to(resp.dtype)
+    kp = kp * weights.unsqueeze(-1)
+    return kp, weights
+
+
+class Detector(torch.nn.Module):
+    """Module form of :func:`detect`; stores the settings, ``forward(image) -> (keypoints, weights)``.
+
+    >>> kp, w = Detector(max_features=20, grid=(2, 2))(torch.rand(1, 1, 48, 48))
+    >>> kp.shape
+    torch.Size([1, 20, 2])
+    """
+
+    def __init__(
+        self,
+        max_features: int = 500,
+        grid: tuple[int, int] = (8, 8),
+        response: str = "gftt",
+        nms_radius: int = 3,
+        quality: float = 0.01,
+        min_response: float = 1e-4,
+        border: int = 8,
+        subpixel: bool = True,
+        k: float = 0.04,
+    ) -> None:
+        super().__init__()
+        check_choice(response, _RESPONSES, "response")
+        _check_settings(max_features, tuple(grid), nms_radius, border)
+        self.max_features = max_features
+        self.grid = tuple(grid)
+        self.response = response
+        self.nms_radius = nms_radius
+        self.quality = quality
+        self.min_response = min_response
+        self.border = border
+        self.subpixel = subpixel
+        self.k = k
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return detect(
+            image,
+            max_features=self.max_features,
+            grid=self.grid,
+            response=self.response,
+            nms_radius=self.nms_radius,
+            quality=self.quality,
+            min_response=self.min_response,
+            border=self.border,
+            subpixel=self.subpixel,
+            k=self.k,
+        )
+
+    def extra_repr(self) -> str:
+        return f"max_features={self.max_features}, grid={self.grid}, response={self.response!r}"
+
+
+def replenish(
+    image: torch.Tensor,
+    keypoints: torch.Tensor,
+    weights: torch.Tensor,
+    max_features: int | None = None,
+    min_distance: float = 8.0,
+    **detect_kwargs,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keep the live tracks in their slots and fill the empty slots with fresh detections.
+
+    Live tracks (``weights > 0``) keep slot, position and weight. Fresh corners from
+    :func:`detect` on ``image`` that lie at least ``min_distance`` pixels from every live
+    track fill the empty slots in the detector's order (round-robin over the grid), with
+    weight 1. Slots beyond what the image offers stay empty (weight 0, position (0, 0)).
+
+    Args:
+        image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image in [0, 1] (the frame the
+            keypoints live in).
+        keypoints: ``(B, N, 2)`` current tracks.
+        weights: ``(B, N)`` their weights; 0 marks an empty or lost slot.
+        max_features: slots of the result, ``M >= N`` (default N); slots N..M-1 start empty.
+        min_distance: minimum distance in pixels between a new keypoint and any live track.
+        **detect_kwargs: passed to :func:`detect` (``grid``, ``response``, ``border``, ...).
+
+    Returns:
+        keypoints ``(B, M, 2)`` and weights ``(B, M)``.
+
+    >>> img = torch.rand(1, 1, 64, 64)
+    >>> kp, w = replenish(img, torch.zeros(1, 10, 2), torch.zeros(1, 10), grid=(2, 2))
+    >>> kp.shape, w.shape
+    (torch.Size([1, 10, 2]), torch.Size([1, 10]))
+    """
+    dims = check_image(image, "image")
+    check_shape(keypoints, ["B", "N", "2"], "keypoints", dims)
+    check_shape(weights, ["B", "N"], "weights", dims)
+    check_float(keypoints, "keypoints")
+    check_float(weights, "weights")
+    check_same_device(image, "image", keypoints=keypoints, weights=weights)
+    check_finite(keypoints, "keypoints")
+    check_finite(weights, "weights")
+    n = dims["N"]
+    m = n if max_features is None else max_features
+    if not isinstance(m, int) or m < n:
+        raise ValueRangeError(f"max_features: expected an int >= N = {n} (the slots of keypoints), got {m!r}")
+    if not min_distance >= 0:
+        raise ValueRangeError(f"min_distance: expected a number >= 0, got {min_distance!r}")
+    b = dims["B"]
+    if m > n:
+        keypoints = F.pad(keypoints, (0, 0, 0, m - n))
+        weights = F.pad(weights, (0, m - n))
+    # Enough candidates to fill every slot even when some fall next to live tracks.
+    cand, cand_w = detect(image, max_features=2 * m, **detect_kwargs)
+    cand = cand.to(keypoints.dtype)
+    live = weights > 0
+    with torch.no_grad():
+        d2 = (cand.unsqueeze(2) - keypoints.detach().unsqueeze(1)).pow(2).sum(-1)  # (B, 2M, M)
+        d2 = torch.where(live.unsqueeze(1), d2, torch.full_like(d2, float("inf")))
+        usable = (cand_w > 0) & (d2.amin(dim=2) >= min_distance**2)
+        # Usable candidates first, in detection order (stable sort keeps the order).
+        order = torch.sort(usable.to(torch.uint8), dim=1, descending=True, stable=True).indices
+        n_usable = usable.sum(dim=1, keepdim=True)
+        empty = ~live
+        slot_rank = empty.long().cumsum(dim=1) - 1  # j-th empty slot gets the j-th usable candidate
+        fill = empty & (slot_rank < n_usable)
+        pick = order.gather(1, slot_rank.clamp(0, cand.shape[1] - 1))
+        fresh = cand.gather(1, pick.unsqueeze(-1).expand(b, m, 2))
+    zeros = torch.zeros_like(keypoints)
+    new_kp = torch.where(live.unsqueeze(-1), keypoints, torch.where(fill.unsqueeze(-1), fresh, zeros))
+    new_w = torch.where(live, weights, fill.to(weights.dtype))
+    return new_kp, new_w

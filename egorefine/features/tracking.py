@@ -1,0 +1,646 @@
+"""Feature tracking by batched local block matching, coarse to fine, with sub-pixel peaks.
+
+The paper (PAPER.md, "Features") tracks keypoints from frame to frame by local block
+matching; the tracks feed the least-squares ego-motion of eq. (3). Here every feature of
+every batch item is matched at once, with no Python loop over features:
+
+1. Both images go to grey and into an image pyramid (``levels`` levels, each a 3x3 binomial
+   blur and a stride-2 subsampling, so a pixel ``x`` of level 0 is ``x / 2^l`` on level ``l``).
+2. On the coarsest level the template (``patch_size``^2 around the keypoint in ``prev``) is
+   compared with every position of a search window of radius ``search_radius`` around the
+   start (the ``predicted`` position, else the keypoint itself) in ``next``. Patches and
+   windows of all features are sampled with one ``grid_sample`` each; the cost map of all
+   features is one grouped (depthwise) convolution, with one group per feature.
+3. The best integer shift is refined by a parabola through its neighbours in x and y; the
+   estimate goes to the next finer level (times 2), which searches only ``refine_radius``
+   around it.
+4. A forward-backward check tracks the result back from ``next`` to ``prev`` and rejects
+   features whose round trip misses the start by more than ``fb_threshold`` pixels.
+
+``soft=True`` adds a differentiable last step: a soft-argmax of ``-cost / temperature`` over a
+``refine_radius`` window on level 0 around the (integer-rounded) hard estimate, so the
+returned positions have gradients with respect to both images and the keypoints.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from kornia.color import rgb_to_grayscale
+
+from ..core import (
+    ValueRangeError,
+    check_choice,
+    check_finite,
+    check_float,
+    check_same_device,
+    check_shape,
+    eps_like,
+)
+
+__all__ = ["track", "Tracker", "TrackOutput", "build_pyramid"]
+
+_COSTS = ("zncc", "ssd", "sad")
+
+
+class TrackOutput(NamedTuple):
+    """Result of :func:`track`.
+
+    Attributes:
+        keypoints: ``(B, N, 2)`` (x, y) positions in ``next``; lost features keep a finite estimate.
+        weights: ``(B, N)`` input weight times success (0 for lost, failed forward-backward check,
+            out of image, too little texture or too low a score).
+        score: ``(B, N)`` match quality at the result: ZNCC in [-1, 1] for ``cost="zncc"``, the
+            negated mean squared / absolute difference per pixel for ``"ssd"`` / ``"sad"``
+            (higher is better in every case).
+        fb_error: ``(B, N)`` forward-backward round-trip error in pixels (0 without the check).
+    """
+
+    keypoints: torch.Tensor
+    weights: torch.Tensor
+    score: torch.Tensor
+    fb_error: torch.Tensor
+
+
+# 3x3 binomial kernel [1, 2, 1]^T [1, 2, 1] / 16 as anti-aliasing, evaluated only at the kept
+# (even) pixels by strided slicing: pixel 2i of level l becomes pixel i of level l+1, so
+# x_{l+1} = x_l / 2. This costs a fraction of kornia's pyrdown (5x5 blur and bilinear resize),
+# which matters here: the pyramid is a large part of the tracking time.
+def _pyrdown(x: torch.Tensor) -> torch.Tensor:
+    x = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    rows = x[..., 0:-2:2, :] + 2 * x[..., 1:-1:2, :] + x[..., 2::2, :]
+    return (rows[..., 0:-2:2] + 2 * rows[..., 1:-1:2] + rows[..., 2::2]) * 0.0625
+
+
+def build_pyramid(image: torch.Tensor, levels: int) -> list[torch.Tensor]:
+    """Grey image pyramid used by :func:`track`: level 0 is the (grey) input, each next level half the size.
+
+    A pixel ``(x, y)`` of level 0 lies at ``(x, y) / 2^l`` on level ``l``.
+
+    Args:
+        image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image.
+        levels: number of levels (>= 1).
+
+    Returns:
+        list of ``levels`` tensors ``(B, 1, H_l, W_l)`` with ``H_{l+1} = ceil(H_l / 2)``.
+
+    >>> [p.shape[-1] for p in build_pyramid(torch.rand(1, 3, 32, 40), 3)]
+    [40, 20, 10]
+    """
+    gray = rgb_to_grayscale(image) if image.shape[1] == 3 else image
+    pyr = [gray]
+    for _ in range(levels - 1):
+        pyr.append(_pyrdown(pyr[-1]))
+    return pyr
+
+
+def _offsets(size: int, like: torch.Tensor) -> torch.Tensor:
+    """(size*size, 2) integer (x, y) offsets of a centred square, row-major, in ``like``'s dtype."""
+    r = torch.arange(size, device=like.device, dtype=like.dtype) - (size - 1) / 2
+    oy, ox = torch.meshgrid(r, r, indexing="ij")
+    return torch.stack([ox.reshape(-1), oy.reshape(-1)], dim=-1)
+
+
+def _extract_patches(image: torch.Tensor, centres: torch.Tensor, size: int) -> torch.Tensor:
+    """``size x size`` patches of ``image`` (B, 1, H, W) around integer ``centres`` (B, N, 2) -> (B, N, size, size).
+
+    ``centres`` hold whole numbers (any dtype); outside the image the border pixel is repeated.
+    Integer centres need no interpolation: the patches are exact pixels, gathered by index,
+    and the gradient reaches ``image`` (not ``centres``, which are piecewise constant anyway).
+    """
+    b, _, h, w = image.shape
+    n = centres.shape[1]
+    c = centres.long()
+    r = torch.arange(size, device=image.device) - (size - 1) // 2
+    xs = (c[..., 0:1] + r.view(1, 1, size)).clamp(0, w - 1)  # (B, N, s)
+    ys = (c[..., 1:2] + r.view(1, 1, size)).clamp(0, h - 1)
+    idx = ys.unsqueeze(-1) * w + xs.unsqueeze(-2)  # (B, N, s, s)
+    out = image.reshape(b, h * w).gather(1, idx.reshape(b, n * size * size))
+    return out.view(b, n, size, size)
+
+
+def _box_maps(image: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sums of ``image`` (B, 1, H, W) and of its square over the ``size x size`` box around every pixel.
+
+    The image is extended by repeating its border, as :func:`_extract_patches` does. Running
+    sums (cumsum, in float64 so that the differences do not lose digits) along each axis;
+    used on coarse levels, where the search windows of all features together cover more
+    pixels than the image itself.
+    """
+    r = size // 2
+    x = torch.cat([image, image * image], dim=1)
+    x = F.pad(x, (r + 1, r, r + 1, r), mode="replicate").double()
+    x = x.cumsum(-1)
+    x = x[..., size:] - x[..., :-size]
+    x = x.cumsum(-2)
+    x = (x[..., size:, :] - x[..., :-size, :]).to(image.dtype)
+    return x[:, 0:1], x[:, 1:2]
+
+
+def _cost_map(
+    template: torch.Tensor,
+    window: torch.Tensor,
+    cost: str,
+    box: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Matching cost (lower is better) of every shift: (B, N, p, p), (B, N, S, S) -> (B, N, S-p+1, S-p+1).
+
+    ``"zncc"`` returns ``-ZNCC``, ``"ssd"`` / ``"sad"`` the mean squared / absolute difference.
+    ``box``: optional precomputed box sums of the window and of its square at every shift,
+    each (B, N, K, K) (see :func:`_box_maps`); otherwise they come from a convolution.
+    """
+    b, n, p, _ = template.shape
+    s = window.shape[-1]
+    bn = b * n
+    win = window.reshape(1, bn, s, s)
+    area = p * p
+    if cost == "sad":
+        cols = F.unfold(window.reshape(bn, 1, s, s), p)  # (BN, p*p, K*K)
+        sad = (cols - template.reshape(bn, area, 1)).abs().mean(dim=1)
+        k = s - p + 1
+        return sad.view(b, n, k, k)
+    # Work on windows offset by the template mean: the sums below then stay small in float32.
+    t_mean = template.mean(dim=(-2, -1), keepdim=True)
+    t0 = (template - t_mean).reshape(bn, 1, p, p)
+    win = (window - t_mean).reshape(1, bn, s, s)
+    # Grouped (depthwise) convolutions, one group per feature: the correlation with the
+    # zero-mean template, and box sums of the window and of its square (a convolution with
+    # ones is much faster than avg_pool2d for these on CPU). Two separate calls stay on the
+    # fast depthwise path that a combined two-kernel call falls off.
+    corr = F.conv2d(win, t0, groups=bn)[0]  # (BN, K, K)
+    k = s - p + 1
+    if box is None:
+        sums = F.conv2d(torch.cat([win, win * win], dim=0), torch.ones_like(t0), groups=bn)
+        w_sum, w_sq = sums[0], sums[1]
+    else:
+        # Raw sums -> sums of the mean-offset window: sum (w - m) and sum (w - m)^2.
+        m = t_mean.reshape(bn, 1, 1)
+        raw_sum, raw_sq = box[0].reshape(bn, k, k), box[1].reshape(bn, k, k)
+        w_sum = raw_sum - area * m
+        w_sq = raw_sq - 2 * m * raw_sum + area * m * m
+    t_sq = (t0 * t0).sum(dim=(-2, -1)).view(bn, 1, 1)
+    eps = eps_like(window)
+    if cost == "ssd":
+        # sum (w - t)^2 = sum w^2 - 2 sum w t + sum t^2, with t = t0 (the window was offset by the mean).
+        ssd = (w_sq - 2 * corr + t_sq) / area
+        return ssd.clamp_min(0).view(b, n, k, k)
+    # ZNCC = sum (w - mean_w) t0 / sqrt(sum (w - mean_w)^2 * sum t0^2), as sum mean_w * t0 = 0.
+    w_var = (w_sq - w_sum * w_sum / area).clamp_min(0)
+    # Clamp under the square root: a flat patch has zero variance (ZNCC 0, finite gradient).
+    den = torch.sqrt((w_var * t_sq).clamp_min(eps))
+    return -(corr / den).view(b, n, k, k)
+
+
+def _parabola(cm: torch.Tensor, minus: torch.Tensor, plus: torch.Tensor) -> torch.Tensor:
+    """Vertex of the parabola through (-1, minus), (0, cm), (1, plus), clamped to half a pixel."""
+    curv = (minus - 2 * cm + plus).clamp_min(eps_like(cm))
+    return (0.5 * (minus - plus) / curv).clamp(-0.5, 0.5)
+
+
+def _best_shift(cost_map: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sub-pixel arg-min of cost maps (B, N, K, K).
+
+    Returns shift (B, N, 2) (x, y) relative to the window centre, the cost at the integer
+    minimum (B, N), and a flag (B, N) that is True where the minimum lies on the window's edge
+    (the true match may lie outside the window).
+    """
+    b, n, k, _ = cost_map.shape
+    flat = cost_map.reshape(b, n, k * k)
+    best, idx = flat.min(dim=-1)
+    iy, ix = idx // k, idx % k
+    on_edge = (ix == 0) | (iy == 0) | (ix == k - 1) | (iy == k - 1)
+
+    def at(dx: int, dy: int) -> torch.Tensor:
+        j = (iy + dy).clamp(0, k - 1) * k + (ix + dx).clamp(0, k - 1)
+        return flat.gather(-1, j.unsqueeze(-1)).squeeze(-1)
+
+    sx = _parabola(best, at(-1, 0), at(1, 0))
+    sy = _parabola(best, at(0, -1), at(0, 1))
+    # No sub-pixel step along an axis whose minimum is on the edge (the parabola would be one-sided).
+    sx = torch.where((ix == 0) | (ix == k - 1), torch.zeros_like(sx), sx)
+    sy = torch.where((iy == 0) | (iy == k - 1), torch.zeros_like(sy), sy)
+    r = (k - 1) / 2
+    shift = torch.stack([ix.to(cost_map.dtype) - r + sx, iy.to(cost_map.dtype) - r + sy], dim=-1)
+    return shift, best, on_edge
+
+
+def _match_level(
+    src: torch.Tensor,
+    dst: torch.Tensor,
+    points: torch.Tensor,
+    estimate: torch.Tensor,
+    patch_size: int,
+    radius: int,
+    cost: str,
+    temperature: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One level of block matching; ``points`` in ``src`` and ``estimate`` in ``dst`` in this level's px.
+
+    The template is cut at the rounded point and the window at the rounded estimate, so both
+    are exact pixels (no interpolation); the point's fractional part is added back to the
+    match (the neighbourhood moves as a whole). With ``temperature`` the shift is a
+    soft-argmax of ``-cost / temperature`` instead of the arg-min plus parabola.
+
+    Returns the new estimate (B, N, 2), the best cost (B, N) and the on-edge flag (B, N).
+    """
+    p_int = points.detach().round()
+    frac = points - p_int
+    centre = (estimate.detach() - frac.detach()).round()
+    template = _extract_patches(src, p_int, patch_size)
+    window = _extract_patches(dst, centre, patch_size + 2 * radius)
+    b, n = points.shape[:2]
+    k = 2 * radius + 1
+    box = None
+    if cost != "sad" and n * k * k > 2 * dst.shape[-2] * dst.shape[-1]:
+        # Coarse level: box sums of the whole (small) image, then one gather per shift, are
+        # cheaper than box sums window by window.
+        box_sum, box_sq = _box_maps(dst, patch_size)
+        box = (_extract_patches(box_sum, centre, k), _extract_patches(box_sq, centre, k))
+    cmap = _cost_map(template, window, cost, box)
+    if temperature is None:
+        shift, best, on_edge = _best_shift(cmap)
+    else:
+        b, n, k, _ = cmap.shape
+        flat = cmap.reshape(b, n, k * k)
+        prob = torch.softmax(-flat / temperature, dim=-1)
+        shift = prob @ _offsets(k, prob)
+        best = flat.amin(dim=-1)
+        on_edge = torch.zeros_like(best, dtype=torch.bool)
+    return centre + frac + shift, best, on_edge
+
+
+def _coarse_to_fine(
+    pyr_src: list[torch.Tensor],
+    pyr_dst: list[torch.Tensor],
+    points: torch.Tensor,
+    start: torch.Tensor,
+    patch_size: int,
+    search_radius: int,
+    refine_radius: int,
+    cost: str,
+    stop_level: int = 0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Hard block matching of ``points`` (level-0 px in src) into dst, starting at ``start`` (level-0 px).
+
+    Runs the levels from the coarsest down to ``stop_level``. Returns the level-0 positions
+    (B, N, 2), the best cost of the last level run (B, N) and a flag (B, N) that is True where
+    any level's minimum lay on its window's edge.
+    """
+    levels = len(pyr_src)
+    est = start
+    edge = torch.zeros(points.shape[:2], dtype=torch.bool, device=points.device)
+    best = torch.zeros(points.shape[:2], dtype=points.dtype, device=points.device)
+    for level in range(levels - 1, stop_level - 1, -1):
+        scale = 2.0**level
+        radius = search_radius if level == levels - 1 else refine_radius
+        est_l, best, on_edge = _match_level(
+            pyr_src[level], pyr_dst[level], points / scale, est / scale, patch_size, radius, cost
+        )
+        est = est_l * scale
+        edge = edge | on_edge
+    return est, best, edge
+
+
+def _sample_patches(image: torch.Tensor, centres: torch.Tensor, size: int, mode: str = "bicubic") -> torch.Tensor:
+    """Interpolated ``size x size`` patches of ``image`` (B, 1, H, W) at sub-pixel ``centres`` (B, N, 2).
+
+    Differentiable with respect to ``image`` and ``centres``; outside the image the border
+    pixel is repeated. Returns (B, N, size, size).
+    """
+    b, _, h, w = image.shape
+    n = centres.shape[1]
+    pts = centres.unsqueeze(2) + _offsets(size, centres).view(1, 1, size * size, 2)
+    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], device=pts.device, dtype=pts.dtype)
+    out = F.grid_sample(image, pts * scale - 1.0, mode=mode, padding_mode="border", align_corners=True)
+    return out.view(b, n, size, size)
+
+
+def _lk_refine(
+    src: torch.Tensor,
+    dst: torch.Tensor,
+    points: torch.Tensor,
+    estimate: torch.Tensor,
+    patch_size: int,
+    iters: int,
+    cost: str,
+) -> torch.Tensor:
+    """Sub-pixel polish of level-0 matches by inverse-compositional Lucas-Kanade (translation only).
+
+    The template is the exact-pixel patch at the rounded point; the matching patch of ``dst``
+    is sampled bilinearly at the current estimate, and each iteration solves the 2x2 normal
+    equations ``(sum g g^T) delta = sum g (T - I)`` with the template gradient ``g``. For
+    ``cost="zncc"`` both patches are normalised to zero mean and equal spread first (gain and
+    bias invariant, like ZNCC). Steps are clamped to half a pixel each and the total change to
+    one pixel, so a flat or edge-only patch cannot run away. Differentiable (grid_sample).
+    """
+    p_int = points.detach().round()
+    frac = points - p_int
+    ext = _extract_patches(src, p_int, patch_size + 2)
+    tpl = ext[..., 1:-1, 1:-1]
+    gx = 0.5 * (ext[..., 1:-1, 2:] - ext[..., 1:-1, :-2])
+    gy = 0.5 * (ext[..., 2:, 1:-1] - ext[..., :-2, 1:-1])
+    eps = eps_like(tpl)
+    if cost == "zncc":
+        # Zero-mean patches need zero-mean gradients: the mean's own gradient would inflate the
+        # 2x2 system and shrink every step.
+        tpl = tpl - tpl.mean(dim=(-2, -1), keepdim=True)
+        t_std = tpl.pow(2).mean(dim=(-2, -1), keepdim=True).clamp_min(eps).sqrt()
+        gx = gx - gx.mean(dim=(-2, -1), keepdim=True)
+        gy = gy - gy.mean(dim=(-2, -1), keepdim=True)
+    sxx = (gx * gx).sum(dim=(-2, -1))
+    syy = (gy * gy).sum(dim=(-2, -1))
+    sxy = (gx * gy).sum(dim=(-2, -1))
+    # Tikhonov term relative to the trace: keeps the 2x2 solve finite on flat patches.
+    reg = 1e-3 * (sxx + syy) + eps
+    det = ((sxx + reg) * (syy + reg) - sxy * sxy).clamp_min(eps)
+    base = estimate.detach() - frac.detach()  # where the rounded point lands, from block matching
+    pos = estimate - frac
+    for _ in range(iters):
+        img = _sample_patches(dst, pos, patch_size)
+        if cost == "zncc":
+            img = img - img.mean(dim=(-2, -1), keepdim=True)
+            i_std = img.pow(2).mean(dim=(-2, -1), keepdim=True).clamp_min(eps).sqrt()
+            img = img * (t_std / i_std)
+        r = tpl - img
+        bx = (gx * r).sum(dim=(-2, -1))
+        by = (gy * r).sum(dim=(-2, -1))
+        dx = ((syy + reg) * bx - sxy * by) / det
+        dy = ((sxx + reg) * by - sxy * bx) / det
+        step = torch.stack([dx, dy], dim=-1).clamp(-0.5, 0.5)
+        pos = base + (pos + step - base).clamp(-1.0, 1.0)
+    return pos + frac
+
+
+def _track_level0(
+    pyr_src: list[torch.Tensor],
+    pyr_dst: list[torch.Tensor],
+    points: torch.Tensor,
+    start: torch.Tensor,
+    patch_size: int,
+    search_radius: int,
+    refine_radius: int,
+    cost: str,
+    lk_iters: int,
+    temperature: float | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Full pipeline src -> dst: coarse levels (no autograd), level 0, optional soft step, LK polish."""
+    levels = len(pyr_src)
+    with torch.no_grad():
+        src_d = [p.detach() for p in pyr_src]
+        dst_d = [p.detach() for p in pyr_dst]
+        est, _, edge = _coarse_to_fine(
+            src_d, dst_d, points.detach(), start.detach(), patch_size, search_radius, refine_radius, cost, 1
+        )
+    radius0 = search_radius if levels == 1 else refine_radius
+    # Level 0 with autograd: the parabola (or the soft-argmax) links positions to the inputs.
+    out, best, edge0 = _match_level(pyr_src[0], pyr_dst[0], points, est, patch_size, radius0, cost)
+    if temperature is not None:
+        # Differentiable step: soft-argmax over a refine_radius window around the hard result.
+        out, _, _ = _match_level(
+            pyr_src[0], pyr_dst[0], points, out.detach(), patch_size, refine_radius, cost, temperature
+        )
+    if lk_iters > 0:
+        out = _lk_refine(pyr_src[0], pyr_dst[0], points, out, patch_size, lk_iters, cost)
+    return out, best, edge | edge0
+
+
+def _check_finite_images(prev: torch.Tensor, next: torch.Tensor) -> None:  # noqa: A002
+    """Raise :class:`ValueRangeError` if an image holds NaN or Inf.
+
+    The same test as ``core.check_finite`` through one sum per image: a sum is finite exactly
+    when every term is (images in [0, 1] cannot overflow it), and a full-size ``isfinite``
+    costs as much as a pyramid level here. One synchronisation for both images.
+    """
+    finite = torch.isfinite(torch.stack([prev.sum(), next.sum()]))
+    if not bool(finite.all()):
+        name = "prev" if not bool(finite[0]) else "next"
+        raise ValueRangeError(f"{name}: contains NaN or Inf")
+
+
+def _check_track_settings(
+    patch_size: int,
+    search_radius: int,
+    refine_radius: int,
+    levels: int,
+    cost: str,
+    fb_threshold: float,
+    temperature: float,
+    lk_iters: int,
+) -> None:
+    if not isinstance(patch_size, int) or patch_size < 3 or patch_size % 2 == 0:
+        raise ValueRangeError(f"patch_size: expected an odd int >= 3, got {patch_size!r}")
+    if not isinstance(search_radius, int) or search_radius < 1:
+        raise ValueRangeError(f"search_radius: expected an int >= 1, got {search_radius!r}")
+    if not isinstance(refine_radius, int) or refine_radius < 1:
+        raise ValueRangeError(f"refine_radius: expected an int >= 1, got {refine_radius!r}")
+    if not isinstance(levels, int) or levels < 1:
+        raise ValueRangeError(f"levels: expected an int >= 1, got {levels!r}")
+    check_choice(cost, _COSTS, "cost")
+    if not fb_threshold > 0:
+        raise ValueRangeError(f"fb_threshold: expected a number > 0, got {fb_threshold!r}")
+    if not temperature > 0:
+        raise ValueRangeError(f"temperature: expected a number > 0, got {temperature!r}")
+    if not isinstance(lk_iters, int) or lk_iters < 0:
+        raise ValueRangeError(f"lk_iters: expected an int >= 0, got {lk_iters!r}")
+
+
+def track(
+    prev: torch.Tensor,
+    next: torch.Tensor,  # noqa: A002 - the agreed API name
+    keypoints: torch.Tensor,
+    weights: torch.Tensor,
+    predicted: torch.Tensor | None = None,
+    patch_size: int = 9,
+    search_radius: int = 6,
+    refine_radius: int = 2,
+    levels: int = 3,
+    cost: str = "zncc",
+    fb_check: bool = True,
+    fb_threshold: float = 1.0,
+    min_score: float | None = 0.7,
+    min_texture: float = 0.01,
+    soft: bool = False,
+    temperature: float = 0.02,
+    lk_iters: int = 2,
+) -> TrackOutput:
+    """Track keypoints from ``prev`` to ``next`` by coarse-to-fine block matching.
+
+    The coarsest level searches ``search_radius`` pixels (of that level) around the start,
+    every finer level ``refine_radius`` around the estimate from the level above, so the
+    reach on level 0 is about ``search_radius * 2^(levels-1) + refine_radius * (2^(levels-1) - 1)``
+    pixels (with the defaults: 6 * 4 + 2 * 3 = 30 px) around ``predicted`` (or the keypoint).
+
+    A feature fails (weight 0) when its template's standard deviation is below
+    ``min_texture``, when a level's best match lies on the edge of its window, when the
+    score is below ``min_score`` (``cost="zncc"`` only; ``None`` to skip), when the result
+    lies outside ``next``, or when the forward-backward round trip misses by more than
+    ``fb_threshold`` px (``fb_check=True``). Black or textureless frames therefore give
+    weights all 0 and no error.
+
+    With ``soft=False`` positions are differentiable only piecewise (through the parabola
+    fits). With ``soft=True`` the last step is a soft-argmax of ``-cost / temperature`` over a
+    ``refine_radius`` window on level 0 centred on the rounded hard estimate (ZNCC lies in
+    [-1, 1], so temperatures of 0.01-0.05 suit it); the result is differentiable with respect
+    to ``prev``, ``next`` and ``keypoints``.
+
+    Args:
+        prev: ``(B, C, H, W)`` image the keypoints live in, C in {1, 3}, float in [0, 1].
+        next: ``(B, C, H, W)`` image to track into.
+        keypoints: ``(B, N, 2)`` (x, y) pixel positions in ``prev``.
+        weights: ``(B, N)`` weights; 0 marks an empty slot (tracked anyway, returned with weight 0).
+        predicted: ``(B, N, 2)`` expected positions in ``next`` to centre the search on, or None.
+        patch_size: odd side of the square template.
+        search_radius: search radius on the coarsest level (px of that level).
+        refine_radius: search radius on the finer levels.
+        levels: pyramid levels (1 = no pyramid).
+        cost: ``"zncc"`` (default), ``"ssd"`` or ``"sad"`` (slower: no convolution form).
+        fb_check: run the forward-backward consistency check.
+        fb_threshold: largest round-trip error in px.
+        min_score: smallest ZNCC accepted (``cost="zncc"`` only), or None.
+        min_texture: smallest standard deviation of the template (intensity units).
+        soft: differentiable soft-argmax last step.
+        temperature: softmax temperature of the soft step (cost units).
+
+    Returns:
+        :class:`TrackOutput` with keypoints ``(B, N, 2)``, weights, score and fb_error ``(B, N)``.
+
+    Raises:
+        ShapeError: shapes of images, keypoints, weights or predicted disagree.
+        ValueRangeError: NaN/Inf in the inputs or a bad setting.
+
+    >>> img = torch.rand(1, 1, 48, 64)
+    >>> out = track(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1))
+    >>> out.keypoints.shape, out.weights.shape
+    (torch.Size([1, 1, 2]), torch.Size([1, 1]))
+    """
+    dims = check_shape(prev, ["B", "1|3", "H", "W"], "prev")
+    check_shape(next, ["B", "1|3", "H", "W"], "next", dims)
+    check_float(prev, "prev")
+    check_float(next, "next")
+    _check_finite_images(prev, next)
+    check_shape(keypoints, ["B", "N", "2"], "keypoints", dims)
+    check_shape(weights, ["B", "N"], "weights", dims)
+    for name, t in (("keypoints", keypoints), ("weights", weights)):
+        check_float(t, name)
+        check_finite(t, name)
+    check_same_device(prev, "prev", next=next, keypoints=keypoints, weights=weights, predicted=predicted)
+    if predicted is not None:
+        check_shape(predicted, ["B", "N", "2"], "predicted", dims)
+        check_float(predicted, "predicted")
+        check_finite(predicted, "predicted")
+    _check_track_settings(patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters)
+
+    h, w = dims["H"], dims["W"]
+    keypoints = keypoints.to(prev.dtype)
+    pyr_prev = build_pyramid(prev, levels)
+    pyr_next = build_pyramid(next, levels)
+    start = keypoints if predicted is None else predicted.to(prev.dtype)
+    out_kp, best, edge = _track_level0(
+        pyr_prev, pyr_next, keypoints, start, patch_size, search_radius, refine_radius, cost, lk_iters,
+        temperature if soft else None,
+    )
+    score = -best.detach()
+
+    with torch.no_grad():
+        kp_d = out_kp.detach()
+        kp_in = keypoints.detach()
+        ok = (weights > 0) & ~edge
+        template = _extract_patches(pyr_prev[0].detach(), kp_in.round(), patch_size)
+        ok = ok & (template.flatten(2).std(dim=-1) >= min_texture)
+        if min_score is not None and cost == "zncc":
+            ok = ok & (score >= min_score)
+        inside = (kp_d[..., 0] >= 0) & (kp_d[..., 0] <= w - 1) & (kp_d[..., 1] >= 0) & (kp_d[..., 1] <= h - 1)
+        ok = ok & inside & torch.isfinite(kp_d).all(dim=-1)
+        if fb_check:
+            # Track the result back into prev, the search centred on the original keypoint, and
+            # measure the round trip.
+            # One LK iteration is enough to measure a round trip against a threshold of ~1 px.
+            back, _, back_edge = _track_level0(
+                pyr_next, pyr_prev, kp_d, kp_in, patch_size, search_radius, refine_radius, cost, min(lk_iters, 1),
+                None,
+            )
+            fb_error = (back - kp_in).norm(dim=-1)
+            ok = ok & ~back_edge & (fb_error <= fb_threshold)
+        else:
+            fb_error = torch.zeros_like(weights)
+    new_w = weights * ok.to(weights.dtype)
+    return TrackOutput(out_kp, new_w, score.to(weights.dtype), fb_error.to(weights.dtype))
+
+
+class Tracker(torch.nn.Module):
+    """Module form of :func:`track`; stores the settings.
+
+    ``forward(prev, next, keypoints, weights, predicted=None) -> TrackOutput``.
+
+    >>> img = torch.rand(1, 1, 48, 64)
+    >>> Tracker(levels=2)(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1)).keypoints.shape
+    torch.Size([1, 1, 2])
+    """
+
+    def __init__(
+        self,
+        patch_size: int = 9,
+        search_radius: int = 6,
+        refine_radius: int = 2,
+        levels: int = 3,
+        cost: str = "zncc",
+        fb_check: bool = True,
+        fb_threshold: float = 1.0,
+        min_score: float | None = 0.7,
+        min_texture: float = 0.01,
+        soft: bool = False,
+        temperature: float = 0.02,
+        lk_iters: int = 2,
+    ) -> None:
+        super().__init__()
+        _check_track_settings(
+            patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters
+        )
+        self.patch_size = patch_size
+        self.search_radius = search_radius
+        self.refine_radius = refine_radius
+        self.levels = levels
+        self.cost = cost
+        self.fb_check = fb_check
+        self.fb_threshold = fb_threshold
+        self.min_score = min_score
+        self.min_texture = min_texture
+        self.soft = soft
+        self.temperature = temperature
+        self.lk_iters = lk_iters
+
+    def forward(
+        self,
+        prev: torch.Tensor,
+        next: torch.Tensor,  # noqa: A002 - the agreed API name
+        keypoints: torch.Tensor,
+        weights: torch.Tensor,
+        predicted: torch.Tensor | None = None,
+    ) -> TrackOutput:
+        return track(
+            prev,
+            next,
+            keypoints,
+            weights,
+            predicted=predicted,
+            patch_size=self.patch_size,
+            search_radius=self.search_radius,
+            refine_radius=self.refine_radius,
+            levels=self.levels,
+            cost=self.cost,
+            fb_check=self.fb_check,
+            fb_threshold=self.fb_threshold,
+            min_score=self.min_score,
+            min_texture=self.min_texture,
+            soft=self.soft,
+            temperature=self.temperature,
+            lk_iters=self.lk_iters,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"patch_size={self.patch_size}, search_radius={self.search_radius}, levels={self.levels}, "
+            f"cost={self.cost!r}, fb_check={self.fb_check}, soft={self.soft}"
+        )
