@@ -60,6 +60,8 @@ _MIN_DEPTH_RATIO = 1e-3
 # its own, shifts it by (parallax) x (disparity change across one pixel), a few hundredths of a
 # pixel on real surfaces; the slack makes neighbouring squares overlap instead of leaving cracks.
 _COVER_SLACK = 0.1
+# The four bilinear neighbours (x0 + i, y0 + j) of a sub-pixel point.
+_CORNERS = ((0, 0), (1, 0), (0, 1), (1, 1))
 
 
 class Prediction(NamedTuple):
@@ -81,7 +83,7 @@ class Prediction(NamedTuple):
     confidence: torch.Tensor
 
 
-def _rotate(R: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor, vz: torch.Tensor):
+def _rotate(R: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor, vz: torch.Tensor | float):
     """``R @ (vx, vy, vz)`` for ``R`` ``(B, 3, 3)`` and components of any shape ``(B, ...)``."""
     shape = (R.shape[0],) + (1,) * (vx.dim() - 1)
     r = [[R[:, i, j].reshape(shape) for j in range(3)] for i in range(3)]
@@ -90,20 +92,24 @@ def _rotate(R: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor, vz: torch.Tenso
 
 def _bilinear_gather(
     values: list[torch.Tensor], ok: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor
-) -> tuple[list[torch.Tensor], torch.Tensor, list[torch.Tensor], torch.Tensor]:
+) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
     """The four neighbours of sub-pixel points ``(xs, ys)`` ``(B, H, W)`` in maps ``(B, H, W)``.
 
     Returns the gathered ``values`` (each ``(B, 4, H, W)``), their ``ok`` mask (out-of-image
-    neighbours are not ok), the bilinear weights ``(B, 4, H, W)``.
+    neighbours are not ok) and the bilinear weights ``(B, 4, H, W)``.
     """
     B, H, W = ok.shape
     x0 = torch.floor(xs.detach().clamp(-2, W + 1))
     y0 = torch.floor(ys.detach().clamp(-2, H + 1))
-    xn = torch.stack([x0, x0 + 1, x0, x0 + 1], dim=1)
-    yn = torch.stack([y0, y0, y0 + 1, y0 + 1], dim=1)
-    wgt = (1 - (xs[:, None] - xn).abs()).clamp_min(0) * (1 - (ys[:, None] - yn).abs()).clamp_min(0)
-    inside = (xn >= 0) & (xn <= W - 1) & (yn >= 0) & (yn <= H - 1)
-    idx = (yn.clamp(0, H - 1) * W + xn.clamp(0, W - 1)).long().view(B, -1)
+    fu, fv = xs - x0, ys - y0
+    wx, wy = (1 - fu, fu), (1 - fv, fv)
+    in_x = ((x0 >= 0) & (x0 <= W - 1), (x0 >= -1) & (x0 <= W - 2))
+    in_y = ((y0 >= 0) & (y0 <= H - 1), (y0 >= -1) & (y0 <= H - 2))
+    wgt = torch.stack([wx[i] * wy[j] for i, j in _CORNERS], dim=1)
+    inside = torch.stack([in_x[i] & in_y[j] for i, j in _CORNERS], dim=1)
+    base = (y0 * W + x0).long()
+    idx = torch.stack([base + (j * W + i) for i, j in _CORNERS], dim=1)
+    idx = torch.where(inside, idx, 0).view(B, -1)
     gathered = [v.reshape(B, -1).gather(1, idx).view(B, 4, H, W) for v in values]
     ok_n = ok.reshape(B, -1).gather(1, idx).view(B, 4, H, W) & inside
     return gathered, ok_n, wgt
@@ -258,18 +264,14 @@ def predict_disparity(
     )
     xs, ys = xs.expand(B, H, W), ys.expand(B, H, W)
     rx, ry = (xs - cx) / fx, (ys - cy) / fy
-    one = torch.ones_like(rx)
-
-    def forward_move(x_n, y_n, disp):
-        """Move points (normalised ray, disparity) forward: eq. (1) as P' = R P + t in inverse depth."""
-        rho = disp / fb
-        t_ = [tr[:, i].view((B,) + (1,) * (disp.dim() - 1)) for i in range(3)]
-        qx, qy, qz = _rotate(R, x_n, y_n, torch.ones_like(x_n))
-        qx, qy, qz = qx + t_[0] * rho, qy + t_[1] * rho, qz + t_[2] * rho
-        return qx, qy, qz
+    one = 1.0  # third component of every normalised ray
 
     # ---- move every source point (eq. 1) and project it into frame t
-    qx, qy, qz = forward_move(rx, ry, d)
+    rho = d / fb
+    qx, qy, qz = _rotate(R, rx, ry, one)
+    qx = qx + tr[:, 0].view(B, 1, 1) * rho
+    qy = qy + tr[:, 1].view(B, 1, 1) * rho
+    qz = qz + tr[:, 2].view(B, 1, 1) * rho
     front = qz > _MIN_DEPTH_RATIO
     qz_safe = qz.clamp_min(_MIN_DEPTH_RATIO)  # clamp before dividing: points behind the camera are masked out
     u = fx * qx / qz_safe + cx
@@ -277,39 +279,45 @@ def predict_disparity(
     d_new = d / qz_safe  # f B / Z' with Z' = Z q_z
     var_new = var / qz_safe**2  # first-order propagation: d' = d / q_z
     src_ok = src_ok & front & torch.isfinite(u) & torch.isfinite(v)
-    u = torch.where(src_ok, u, torch.full_like(u, -10.0))
-    v = torch.where(src_ok, v, torch.full_like(v, -10.0))
+    u = torch.where(src_ok, u, -10.0)
+    v = torch.where(src_ok, v, -10.0)
 
-    # ---- footprint: the four target pixels around each moved point, with bilinear weights
+    # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point, bilinear weights
     x0 = torch.floor(u.detach().clamp(-2, W + 1))
     y0 = torch.floor(v.detach().clamp(-2, H + 1))
-    xt = torch.stack([x0, x0 + 1, x0, x0 + 1], dim=1)  # (B,4,H,W)
-    yt = torch.stack([y0, y0, y0 + 1, y0 + 1], dim=1)
-    bw = (1 - (u[:, None] - xt).abs()).clamp_min(0) * (1 - (v[:, None] - yt).abs()).clamp_min(0)
-    inside = (xt >= 0) & (xt <= W - 1) & (yt >= 0) & (yt <= H - 1)
-    pair_ok = src_ok[:, None] & inside
-    batch_off = (torch.arange(B, device=device) * (H * W)).view(B, 1, 1, 1)
-    tgt = (yt.clamp(0, H - 1) * W + xt.clamp(0, W - 1)).long() + batch_off
-    tgt = torch.where(pair_ok, tgt, torch.zeros_like(tgt)).flatten()
+    fu, fv = u - x0, v - y0
+    wx, wy = (1 - fu, fu), (1 - fv, fv)
+    in_x = ((x0 >= 0) & (x0 <= W - 1), (x0 >= -1) & (x0 <= W - 2))
+    in_y = ((y0 >= 0) & (y0 <= H - 1), (y0 >= -1) & (y0 <= H - 2))
+    bw = torch.stack([wx[i] * wy[j] for i, j in _CORNERS], dim=1)  # (B,4,H,W)
+    pair_ok = torch.stack([src_ok & in_x[i] & in_y[j] for i, j in _CORNERS], dim=1)
+    base = (y0 * W + x0).long() + (torch.arange(B, device=device) * (H * W)).view(B, 1, 1)
+    tgt = torch.stack([base + (j * W + i) for i, j in _CORNERS], dim=1)
+    tgt = torch.where(pair_ok, tgt, 0).flatten()
+    n_flat = B * H * W
 
-    # Coverage test: send the target centre back into frame t-1 at the moved point's depth and check
-    # that it falls in the source pixel's square (exact tiling of the source grid, no cracks, no fattening).
     with torch.no_grad():
-        rho_t = (d_new / fb)[:, None].expand_as(xt)
-        tx, ty = (xt - cx[:, None]) / fx[:, None], (yt - cy[:, None]) / fy[:, None]
-        hx, hy, hz = _rotate(Rt, tx, ty, torch.ones_like(tx))
-        hx = hx + tr_back[:, 0].view(B, 1, 1, 1) * rho_t
-        hy = hy + tr_back[:, 1].view(B, 1, 1, 1) * rho_t
-        hz = hz + tr_back[:, 2].view(B, 1, 1, 1) * rho_t
-        hz_safe = hz.clamp_min(_MIN_DEPTH_RATIO)
-        xb = fx[:, None] * hx / hz_safe + cx[:, None]
-        yb = fy[:, None] * hy / hz_safe + cy[:, None]
-        off = torch.maximum((xb - xs[:, None]).abs(), (yb - ys[:, None]).abs())
-        covered = pair_ok & (hz > _MIN_DEPTH_RATIO) & (off <= 0.5 + _COVER_SLACK)
+        # Coverage test: send the target centre back into frame t-1 at the moved point's depth and check
+        # that it falls in the source pixel's square (an exact tiling of the source grid). The back-projected
+        # direction is affine in the target pixel, so the four corners are the (x0, y0) one plus constants.
+        rho_n = d_new / fb
+        h0 = _rotate(Rt, (x0 - cx) / fx, (y0 - cy) / fy, one)
+        h0 = [h0[k] + tr_back[:, k].view(B, 1, 1) * rho_n for k in range(3)]
+        step_x = (Rt[:, :, 0] / fx.view(B, 1)).view(B, 3, 1, 1)
+        step_y = (Rt[:, :, 1] / fy.view(B, 1)).view(B, 3, 1, 1)
+        offs, fronts = [], []
+        for i, j in _CORNERS:
+            hx, hy, hz = (h0[k] + i * step_x[:, k] + j * step_y[:, k] for k in range(3))
+            hz_safe = hz.clamp_min(_MIN_DEPTH_RATIO)
+            off_x = (fx * hx / hz_safe + cx - xs).abs()
+            off_y = (fy * hy / hz_safe + cy - ys).abs()
+            offs.append(torch.maximum(off_x, off_y))
+            fronts.append(hz > _MIN_DEPTH_RATIO)
+        off = torch.stack(offs, dim=1)
+        covered = pair_ok & torch.stack(fronts, dim=1) & (off <= 0.5 + _COVER_SLACK)
         strict = covered & (off <= 0.5)
-        n_flat = B * H * W
         neg_inf = torch.full((n_flat,), -torch.inf, device=device, dtype=dtype)
-        dn4 = d_new[:, None].expand_as(xt)
+        dn4 = d_new[:, None].expand_as(bw)
         z_slack = neg_inf.scatter_reduce(0, tgt, torch.where(covered, dn4, -torch.inf).flatten(), "amax")
         z_strict = neg_inf.scatter_reduce(0, tgt, torch.where(strict, dn4, -torch.inf).flatten(), "amax")
         # Each pair above is tested at its own source's depth, so neighbouring squares of one surface may
@@ -317,12 +325,10 @@ def predict_disparity(
         # per target with ONE depth, the nearest candidate's: send the target back at that depth; the
         # source pixel it falls in (an exact tiling) must belong to that surface. If not, the candidate
         # only reached the target through the slack (fattening): take the nearest strict cover instead.
-        zs = torch.where(torch.isfinite(z_slack), z_slack, torch.zeros_like(z_slack)).view(B, H, W)
-        gx, gy, gz = _rotate(Rt, rx, ry, one)
+        zs = torch.where(torch.isfinite(z_slack), z_slack, 0.0).view(B, H, W)
+        g0 = _rotate(Rt, rx, ry, one)  # target rays turned into frame t-1 (reused by the refinement)
         rho_c = zs / fb
-        gx = gx + tr_back[:, 0].view(B, 1, 1) * rho_c
-        gy = gy + tr_back[:, 1].view(B, 1, 1) * rho_c
-        gz = gz + tr_back[:, 2].view(B, 1, 1) * rho_c
+        gx, gy, gz = (g0[k] + tr_back[:, k].view(B, 1, 1) * rho_c for k in range(3))
         gz_safe = gz.clamp_min(_MIN_DEPTH_RATIO)
         sx = torch.round((fx * gx / gz_safe + cx).clamp(-1, W)).long()
         sy = torch.round((fy * gy / gz_safe + cy).clamp(-1, H)).long()
@@ -333,60 +339,64 @@ def predict_disparity(
         consistent = (s_ok & ((s_d - zs).abs() < surface_tolerance)).flatten()
         zbuf = torch.where(consistent | ~torch.isfinite(z_strict), z_slack, z_strict)
         landed = torch.isfinite(zbuf).view(B, H, W)
+        z_at = torch.where(torch.isfinite(zbuf), zbuf, 0.0)[tgt].view_as(bw)
 
-    dn4 = d_new[:, None].expand_as(xt)
-    vn4 = var_new[:, None].expand_as(xt)
+    dn4 = d_new[:, None].expand_as(bw)
     zeros = torch.zeros(n_flat, device=device, dtype=dtype)
     if mode == "hard":
         # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
-        win = covered & ((dn4.detach() - zbuf[tgt].view_as(dn4)).abs() <= surface_tolerance)
-        w = torch.where(win, bw + eps_like(bw), torch.zeros_like(bw))
+        win = covered & ((dn4.detach() - z_at).abs() <= surface_tolerance)
+        w = torch.where(win, bw + eps_like(bw), 0.0)
     else:
-        # softmax splatting: weights b * exp((d' - m) / T), m = per-target max (no gradient, for stability)
-        with torch.no_grad():
-            m = torch.where(torch.isfinite(zbuf), zbuf, torch.zeros_like(zbuf))[tgt].view_as(dn4)
-            covered = covered & (dn4 <= m + surface_tolerance)  # not the candidates rejected above
-        logit = torch.where(covered, (dn4 - m) / temperature, torch.full_like(dn4, -60.0)).clamp_min(-60.0)
-        w = torch.where(covered, (bw + eps_like(bw)) * torch.exp(logit), torch.zeros_like(bw))
+        # softmax splatting: weights b * exp((d' - m) / T), m = the per-target z-buffer value (no gradient,
+        # for stability); candidates the z-buffer rejected above as fattening are left out.
+        sel = covered & (dn4.detach() <= z_at + surface_tolerance)
+        logit = torch.where(sel, (dn4 - z_at) / temperature, -60.0).clamp_min(-60.0)
+        w = torch.where(sel, (bw + eps_like(bw)) * torch.exp(logit), 0.0)
     wsum = zeros.scatter_add(0, tgt, w.flatten()).view(B, H, W)
     wsum_safe = wsum.clamp_min(eps_like(wsum))  # clamp: empty targets (holes) get 0, not NaN
     est = zeros.scatter_add(0, tgt, (w * dn4).flatten()).view(B, H, W) / wsum_safe
-    est_var = zeros.scatter_add(0, tgt, (w * vn4).flatten()).view(B, H, W) / wsum_safe
+    if variance is None:
+        est_var = torch.zeros_like(est)
+    else:
+        vn4 = var_new[:, None].expand_as(bw)
+        est_var = zeros.scatter_add(0, tgt, (w * vn4).flatten()).view(B, H, W) / wsum_safe
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
+    src_maps = [d] if variance is None else [d, var]
     for _ in range(refine_iterations):
         rho = est / fb
-        hx, hy, hz = _rotate(Rt, rx, ry, one)
-        hx = hx + tr_back[:, 0].view(B, 1, 1) * rho
-        hy = hy + tr_back[:, 1].view(B, 1, 1) * rho
-        hz = hz + tr_back[:, 2].view(B, 1, 1) * rho
+        hx, hy, hz = (g0[k] + tr_back[:, k].view(B, 1, 1) * rho for k in range(3))
         hz_ok = hz > _MIN_DEPTH_RATIO
         hz_safe = hz.clamp_min(_MIN_DEPTH_RATIO)
-        sx = fx * hx / hz_safe + cx
-        sy = fy * hy / hz_safe + cy
+        sxf = fx * hx / hz_safe + cx
+        syf = fy * hy / hz_safe + cy
         expect = est / hz_safe  # the source disparity this target value came from
-        (dk, vk), ok_k, wk = _bilinear_gather([d, var], src_ok, sx, sy)
+        gathered, ok_k, wk = _bilinear_gather(src_maps, src_ok, sxf, syf)
+        dk = gathered[0]
         same = ok_k & ((dk - expect[:, None]).abs() < surface_tolerance)
-        wk = torch.where(same, wk, torch.zeros_like(wk))
+        wk = torch.where(same, wk, 0.0)
         wk_sum = wk.sum(1)
         ok_ref = landed & hz_ok & (wk_sum > 1e-3)
         wk_sum = wk_sum.clamp_min(1e-3)
         d_src = (wk * dk).sum(1) / wk_sum
-        v_src = (wk * vk).sum(1) / wk_sum
-        _, _, qz2 = forward_move((sx - cx) / fx, (sy - cy) / fy, d_src)
-        qz2_ok = qz2 > _MIN_DEPTH_RATIO
+        # move the sampled point forward again (eq. 1); only its new depth ratio q_z is needed
+        qz2 = R[:, 2, 0].view(B, 1, 1) * (sxf - cx) / fx + R[:, 2, 1].view(B, 1, 1) * (syf - cy) / fy
+        qz2 = qz2 + R[:, 2, 2].view(B, 1, 1) + tr[:, 2].view(B, 1, 1) * d_src / fb
+        ok_ref = ok_ref & (qz2 > _MIN_DEPTH_RATIO)
         qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
-        ok_ref = ok_ref & qz2_ok
         est = torch.where(ok_ref, d_src / qz2, est)
-        est_var = torch.where(ok_ref, v_src / qz2**2, est_var)
+        if variance is not None:
+            v_src = (wk * gathered[1]).sum(1) / wk_sum
+            est_var = torch.where(ok_ref, v_src / qz2**2, est_var)
 
     hole = ~landed
-    est = torch.where(landed, est, torch.zeros_like(est))[:, None]
+    est = torch.where(landed, est, 0.0)[:, None]
     hole4 = hole[:, None]
     if fill_holes:
         est, _ = fill_holes_background(est, hole4)
-    out_var = torch.where(landed, est_var + process_noise, torch.full_like(est_var, hole_variance))[:, None]
-    confidence = torch.where(hole4, torch.zeros_like(out_var), 1.0 / (1.0 + out_var))
+    out_var = torch.where(landed, est_var + process_noise, hole_variance)[:, None]
+    confidence = torch.where(hole4, 0.0, 1.0 / (1.0 + out_var))
     return Prediction(est, out_var, hole4, ~hole4, confidence)
 
 

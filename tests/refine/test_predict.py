@@ -356,3 +356,22 @@ def test_gradients_finite_with_holes_and_zero_disparity():
         pred = predict_disparity(d, _translation(tx=-0.05, tz=-0.1), K, torch.tensor([0.1]), mode=mode)
         (g,) = torch.autograd.grad((pred.disparity + pred.variance).sum(), d)
         assert torch.isfinite(g).all()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["hard", "soft"])
+def test_ten_frames_on_rendered_sequence(mode):
+    # The synthetic renderer's exact disparity and motions (paper rig at 160x120, forward motion).
+    data = pytest.importorskip("egorefine.data")
+    seq = data.render_sequence(11, preset="paper", seed=0, height=H, width=W, dtype=torch.float64)
+    K, b = seq.K[None], torch.tensor([seq.baseline], dtype=torch.float64)
+    d, var, valid = seq.disparity[:1], None, None
+    for k in range(1, 11):
+        pred = predict_disparity(d, seq.motions[k : k + 1], K, b, variance=var, valid=valid, mode=mode)
+        truth = seq.disparity[k : k + 1]
+        err = (pred.disparity - truth).abs()
+        inner = pred.valid & ~_near_edge(truth)
+        assert err[pred.valid].mean() < 0.05, k  # measured <= 0.027 px
+        assert err[inner].mean() < 0.015, k  # measured <= 0.0076 px
+        assert (err[pred.valid] > 0.5).float().mean() < 0.02, k  # measured <= 1.2 %
+        d, var, valid = pred.disparity, pred.variance, pred.valid
