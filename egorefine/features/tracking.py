@@ -286,7 +286,7 @@ def _coarse_to_fine(
 
     Runs the levels from the coarsest down to ``stop_level``. Returns the level-0 positions
     (B, N, 2), the best cost of the last level run (B, N) and a flag (B, N) that is True where
-    any level's minimum lay on its window's edge.
+    level 0's minimum lay on its window's edge (all False if level 0 is not run).
     """
     levels = len(pyr_src)
     est = start
@@ -299,7 +299,10 @@ def _coarse_to_fine(
             pyr_src[level], pyr_dst[level], points / scale, est / scale, patch_size, radius, cost
         )
         est = est_l * scale
-        edge = edge | on_edge
+        if level == 0:
+            # Only level 0's edge counts: on a coarser level a minimum on the edge may be a
+            # motion just beyond that window, which the finer levels still reach.
+            edge = edge | on_edge
     return est, best, edge
 
 
@@ -473,7 +476,7 @@ def track(
     pixels (with the defaults: 6 * 4 + 2 * 3 = 30 px) around ``predicted`` (or the keypoint).
 
     A feature fails (weight 0) when its template's standard deviation is below
-    ``min_texture``, when a level's best match lies on the edge of its window, when the
+    ``min_texture``, when level 0's best match lies on the edge of its window, when the
     score is below ``min_score`` (``cost="zncc"`` only; ``None`` to skip), when the result
     lies outside ``next``, or when the forward-backward round trip misses by more than
     ``fb_threshold`` px (``fb_check=True``). Black or textureless frames therefore give
