@@ -228,6 +228,7 @@ def run_sequence(seq, max_disp: int, max_features: int, use_stereo: bool) -> dic
         ),
         "errors": summary,
         "times_ms": {k: statistics.median(v) for k, v in times.items()},
+        "times_min_ms": {k: min(v) for k, v in times.items()},
         "median_tracked": statistics.median(inliers["ours tracked"]),
         "track_vs_lk": {
             "ours_ms": statistics.median(t_ours),

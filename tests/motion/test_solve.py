@@ -314,3 +314,16 @@ def test_bad_input_raises_typed_errors():
         EgoMotionSolver(loss="cauchy")
     with pytest.raises(DTypeError, match="points_prev"):
         solve_ego_motion(pp.long(), pn, d, K, bl)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_black_frame_through_detect_and_track(method):
+    """A black frame: the detector finds nothing, the solve flags it and returns the identity, no exception."""
+    features = pytest.importorskip("egorefine.features")
+    black = torch.zeros(2, 1, 48, 64)
+    kp, w = features.detect(black, max_features=20)
+    out = features.track(black, black, kp, w)
+    K = make_intrinsics(60.0, 31.5, 23.5, 2)
+    res = solve_ego_motion(kp, out.keypoints, torch.zeros(2, 1, 48, 64), K, torch.full((2,), 0.1), out.weights, method)
+    assert not res.ok.any()
+    assert torch.equal(res.motion, torch.eye(4).expand(2, 4, 4)) and (res.num_inliers == 0).all()
