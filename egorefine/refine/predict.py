@@ -92,11 +92,11 @@ def _rotate(R: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor, vz: torch.Tenso
 
 def _bilinear_gather(
     values: list[torch.Tensor], ok: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor
-) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
+) -> list[tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]]:
     """The four neighbours of sub-pixel points ``(xs, ys)`` ``(B, H, W)`` in maps ``(B, H, W)``.
 
-    Returns the gathered ``values`` (each ``(B, 4, H, W)``), their ``ok`` mask (out-of-image
-    neighbours are not ok) and the bilinear weights ``(B, 4, H, W)``.
+    Returns, per neighbour (``_CORNERS`` order), the gathered ``values``, their ``ok`` mask (out-of-image
+    neighbours are not ok) and the bilinear weight, each ``(B, H, W)``.
     """
     B, H, W = ok.shape
     x0 = torch.floor(xs.detach().clamp(-2, W + 1))
@@ -105,14 +105,16 @@ def _bilinear_gather(
     wx, wy = (1 - fu, fu), (1 - fv, fv)
     in_x = ((x0 >= 0) & (x0 <= W - 1), (x0 >= -1) & (x0 <= W - 2))
     in_y = ((y0 >= 0) & (y0 <= H - 1), (y0 >= -1) & (y0 <= H - 2))
-    wgt = torch.stack([wx[i] * wy[j] for i, j in _CORNERS], dim=1)
-    inside = torch.stack([in_x[i] & in_y[j] for i, j in _CORNERS], dim=1)
     base = (y0 * W + x0).long()
-    idx = torch.stack([base + (j * W + i) for i, j in _CORNERS], dim=1)
-    idx = torch.where(inside, idx, 0).view(B, -1)
-    gathered = [v.reshape(B, -1).gather(1, idx).view(B, 4, H, W) for v in values]
-    ok_n = ok.reshape(B, -1).gather(1, idx).view(B, 4, H, W) & inside
-    return gathered, ok_n, wgt
+    flat = [v.reshape(B, -1) for v in values]
+    ok_flat = ok.reshape(B, -1)
+    out = []
+    for i, j in _CORNERS:
+        inside = in_x[i] & in_y[j]
+        idx = torch.where(inside, base + (j * W + i), 0).view(B, -1)
+        gathered = [v.gather(1, idx).view(B, H, W) for v in flat]
+        out.append((gathered, ok_flat.gather(1, idx).view(B, H, W) & inside, wx[i] * wy[j]))
+    return out
 
 
 def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -282,18 +284,15 @@ def predict_disparity(
     u = torch.where(src_ok, u, -10.0)
     v = torch.where(src_ok, v, -10.0)
 
-    # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point, bilinear weights
+    # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point, bilinear weights.
+    # Kept as four (B, H, W) maps, one per corner (_CORNERS), scattered one after the other.
     x0 = torch.floor(u.detach().clamp(-2, W + 1))
     y0 = torch.floor(v.detach().clamp(-2, H + 1))
     fu, fv = u - x0, v - y0
     wx, wy = (1 - fu, fu), (1 - fv, fv)
     in_x = ((x0 >= 0) & (x0 <= W - 1), (x0 >= -1) & (x0 <= W - 2))
     in_y = ((y0 >= 0) & (y0 <= H - 1), (y0 >= -1) & (y0 <= H - 2))
-    bw = torch.stack([wx[i] * wy[j] for i, j in _CORNERS], dim=1)  # (B,4,H,W)
-    pair_ok = torch.stack([src_ok & in_x[i] & in_y[j] for i, j in _CORNERS], dim=1)
     base = (y0 * W + x0).long() + (torch.arange(B, device=device) * (H * W)).view(B, 1, 1)
-    tgt = torch.stack([base + (j * W + i) for i, j in _CORNERS], dim=1)
-    tgt = torch.where(pair_ok, tgt, 0).flatten()
     n_flat = B * H * W
 
     with torch.no_grad():
@@ -305,21 +304,21 @@ def predict_disparity(
         h0 = [h0[k] + tr_back[:, k].view(B, 1, 1) * rho_n for k in range(3)]
         step_x = (Rt[:, :, 0] / fx.view(B, 1)).view(B, 3, 1, 1)
         step_y = (Rt[:, :, 1] / fy.view(B, 1)).view(B, 3, 1, 1)
-        offs, fronts = [], []
+        z_slack = torch.full((n_flat,), -torch.inf, device=device, dtype=dtype)
+        z_strict = z_slack.clone()
+        tgts, covers = [], []
         for i, j in _CORNERS:
+            pair_ok = src_ok & in_x[i] & in_y[j]
+            tgt = torch.where(pair_ok, base + (j * W + i), 0).view(-1)
             hx, hy, hz = (h0[k] + i * step_x[:, k] + j * step_y[:, k] for k in range(3))
             hz_safe = hz.clamp_min(_MIN_DEPTH_RATIO)
-            off_x = (fx * hx / hz_safe + cx - xs).abs()
-            off_y = (fy * hy / hz_safe + cy - ys).abs()
-            offs.append(torch.maximum(off_x, off_y))
-            fronts.append(hz > _MIN_DEPTH_RATIO)
-        off = torch.stack(offs, dim=1)
-        covered = pair_ok & torch.stack(fronts, dim=1) & (off <= 0.5 + _COVER_SLACK)
-        strict = covered & (off <= 0.5)
-        neg_inf = torch.full((n_flat,), -torch.inf, device=device, dtype=dtype)
-        dn4 = d_new[:, None].expand_as(bw)
-        z_slack = neg_inf.scatter_reduce(0, tgt, torch.where(covered, dn4, -torch.inf).flatten(), "amax")
-        z_strict = neg_inf.scatter_reduce(0, tgt, torch.where(strict, dn4, -torch.inf).flatten(), "amax")
+            off = torch.maximum((fx * hx / hz_safe + cx - xs).abs(), (fy * hy / hz_safe + cy - ys).abs())
+            covered = pair_ok & (hz > _MIN_DEPTH_RATIO) & (off <= 0.5 + _COVER_SLACK)
+            strict = covered & (off <= 0.5)
+            z_slack.scatter_reduce_(0, tgt, d_new.masked_fill(~covered, -torch.inf).view(-1), "amax")
+            z_strict.scatter_reduce_(0, tgt, d_new.masked_fill(~strict, -torch.inf).view(-1), "amax")
+            tgts.append(tgt)
+            covers.append(covered)
         # Each pair above is tested at its own source's depth, so neighbouring squares of one surface may
         # leave hairline cracks (closed by the slack) and the slack may fatten a foreground edge. Decide
         # per target with ONE depth, the nearest candidate's: send the target back at that depth; the
@@ -336,31 +335,33 @@ def predict_disparity(
         s_idx = (sy.clamp(0, H - 1) * W + sx.clamp(0, W - 1)).view(B, -1)
         s_ok = src_ok.reshape(B, -1).gather(1, s_idx).view(B, H, W) & s_in
         s_d = d_new.reshape(B, -1).gather(1, s_idx).view(B, H, W)
-        consistent = (s_ok & ((s_d - zs).abs() < surface_tolerance)).flatten()
+        consistent = (s_ok & ((s_d - zs).abs() < surface_tolerance)).view(-1)
         zbuf = torch.where(consistent | ~torch.isfinite(z_strict), z_slack, z_strict)
         landed = torch.isfinite(zbuf).view(B, H, W)
-        z_at = torch.where(torch.isfinite(zbuf), zbuf, 0.0)[tgt].view_as(bw)
+        zbuf = torch.where(landed.view(-1), zbuf, 0.0)
 
-    dn4 = d_new[:, None].expand_as(bw)
-    zeros = torch.zeros(n_flat, device=device, dtype=dtype)
-    if mode == "hard":
-        # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
-        win = covered & ((dn4.detach() - z_at).abs() <= surface_tolerance)
-        w = torch.where(win, bw + eps_like(bw), 0.0)
-    else:
-        # softmax splatting: weights b * exp((d' - m) / T), m = the per-target z-buffer value (no gradient,
-        # for stability); candidates the z-buffer rejected above as fattening are left out.
-        sel = covered & (dn4.detach() <= z_at + surface_tolerance)
-        logit = torch.where(sel, (dn4 - z_at) / temperature, -60.0).clamp_min(-60.0)
-        w = torch.where(sel, (bw + eps_like(bw)) * torch.exp(logit), 0.0)
-    wsum = zeros.scatter_add(0, tgt, w.flatten()).view(B, H, W)
-    wsum_safe = wsum.clamp_min(eps_like(wsum))  # clamp: empty targets (holes) get 0, not NaN
-    est = zeros.scatter_add(0, tgt, (w * dn4).flatten()).view(B, H, W) / wsum_safe
-    if variance is None:
-        est_var = torch.zeros_like(est)
-    else:
-        vn4 = var_new[:, None].expand_as(bw)
-        est_var = zeros.scatter_add(0, tgt, (w * vn4).flatten()).view(B, H, W) / wsum_safe
+    d_det = d_new.detach()
+    wsum = torch.zeros(n_flat, device=device, dtype=dtype)
+    num, num_var = wsum, wsum
+    for (i, j), tgt, covered in zip(_CORNERS, tgts, covers, strict=True):
+        z_at = zbuf.index_select(0, tgt).view(B, H, W)
+        bw = wx[i] * wy[j] + eps_like(d_new)
+        if mode == "hard":
+            # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
+            w = torch.where(covered & ((d_det - z_at).abs() <= surface_tolerance), bw, 0.0)
+        else:
+            # softmax splatting: weights b * exp((d' - m) / T), m = the per-target z-buffer value (no
+            # gradient, for stability); candidates the z-buffer rejected above as fattening are left out.
+            sel = covered & (d_det <= z_at + surface_tolerance)
+            logit = torch.where(sel, (d_new - z_at) / temperature, -60.0).clamp_min(-60.0)
+            w = torch.where(sel, bw * torch.exp(logit), 0.0)
+        wsum = wsum.scatter_add(0, tgt, w.view(-1))
+        num = num.scatter_add(0, tgt, (w * d_new).view(-1))
+        if variance is not None:
+            num_var = num_var.scatter_add(0, tgt, (w * var_new).view(-1))
+    wsum_safe = wsum.clamp_min(eps_like(wsum)).view(B, H, W)  # clamp: empty targets (holes) get 0, not NaN
+    est = num.view(B, H, W) / wsum_safe
+    est_var = torch.zeros_like(est) if variance is None else num_var.view(B, H, W) / wsum_safe
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
     src_maps = [d] if variance is None else [d, var]
@@ -372,14 +373,16 @@ def predict_disparity(
         sxf = fx * hx / hz_safe + cx
         syf = fy * hy / hz_safe + cy
         expect = est / hz_safe  # the source disparity this target value came from
-        gathered, ok_k, wk = _bilinear_gather(src_maps, src_ok, sxf, syf)
-        dk = gathered[0]
-        same = ok_k & ((dk - expect[:, None]).abs() < surface_tolerance)
-        wk = torch.where(same, wk, 0.0)
-        wk_sum = wk.sum(1)
+        wk_sum, d_num, v_num = 0.0, 0.0, 0.0
+        for gathered, ok_k, wk in _bilinear_gather(src_maps, src_ok, sxf, syf):
+            wk = torch.where(ok_k & ((gathered[0] - expect).abs() < surface_tolerance), wk, 0.0)
+            wk_sum = wk_sum + wk
+            d_num = d_num + wk * gathered[0]
+            if variance is not None:
+                v_num = v_num + wk * gathered[1]
         ok_ref = landed & hz_ok & (wk_sum > 1e-3)
         wk_sum = wk_sum.clamp_min(1e-3)
-        d_src = (wk * dk).sum(1) / wk_sum
+        d_src = d_num / wk_sum
         # move the sampled point forward again (eq. 1); only its new depth ratio q_z is needed
         qz2 = R[:, 2, 0].view(B, 1, 1) * (sxf - cx) / fx + R[:, 2, 1].view(B, 1, 1) * (syf - cy) / fy
         qz2 = qz2 + R[:, 2, 2].view(B, 1, 1) + tr[:, 2].view(B, 1, 1) * d_src / fb
@@ -387,7 +390,7 @@ def predict_disparity(
         qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
         est = torch.where(ok_ref, d_src / qz2, est)
         if variance is not None:
-            v_src = (wk * gathered[1]).sum(1) / wk_sum
+            v_src = v_num / wk_sum
             est_var = torch.where(ok_ref, v_src / qz2**2, est_var)
 
     hole = ~landed
