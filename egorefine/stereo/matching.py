@@ -47,7 +47,7 @@ class StereoOutput(NamedTuple):
 
 def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int,
                   cost: str, aggregation: str, subpixel_fit: str, sgm_paths: int, temperature: float | None,
-                  differentiable: bool) -> None:
+                  differentiable: bool, soft_radius: int | None, census_window: int) -> None:
     dims = check_shape(left, ["B", "1|3", "H", "W"], "left")
     check_shape(right, ["B", "1|3", "H", "W"], "right", dims)
     check_same_device(left, "left", right=right)
@@ -70,10 +70,15 @@ def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, m
     check_choice(cost, COSTS, "cost")
     check_choice(aggregation, AGGREGATIONS, "aggregation")
     check_choice(subpixel_fit, SUBPIXEL_FITS, "subpixel_fit")
+    if census_window not in (3, 5, 7):
+        raise ValueRangeError(f"census_window: expected 3, 5 or 7, got {census_window!r}")
     if sgm_paths not in (4, 8):
         raise ValueRangeError(f"sgm_paths: expected 4 or 8, got {sgm_paths}")
     if differentiable and cost == "census":
         raise ValueRangeError("cost: 'census' has no gradient; use 'sad' or 'zncc' with differentiable=True")
+    if soft_radius is not None and (isinstance(soft_radius, bool) or not isinstance(soft_radius, int)
+                                    or soft_radius < 1):
+        raise ValueRangeError(f"soft_radius: expected an int >= 1 or None, got {soft_radius!r}")
     if temperature is not None and not temperature > 0:
         raise ValueRangeError(f"temperature: expected > 0, got {temperature}")
 
@@ -144,7 +149,13 @@ def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, to
     offset = ((c_minus - c_plus) / denom.clamp_min(eps)).clamp(-0.5, 0.5)
     offset = torch.where(interior, offset, torch.zeros_like(offset))
     if opts["differentiable"]:
-        weights = torch.softmax(-vol / (opts["temperature"] * scale), dim=1)
+        logits = -vol / (opts["temperature"] * scale)
+        if opts["soft_radius"] is not None:
+            # local soft-argmin: only candidates within soft_radius of the hard winner take part,
+            # so a second mode elsewhere in the range cannot drag the mean (real images are multimodal)
+            idx = torch.arange(num, device=vol.device).view(1, num, 1, 1)
+            logits = logits.masked_fill((idx - j).abs() > opts["soft_radius"], float("-inf"))
+        weights = torch.softmax(logits, dim=1)
         values = (max_d - 1 - torch.arange(num, device=vol.device, dtype=vol.dtype)).view(1, num, 1, 1)
         disparity = (weights * values).sum(dim=1, keepdim=True)
     elif opts["subpixel"]:
@@ -201,6 +212,7 @@ def match_stereo(
     sgm_paths: int = 4,
     differentiable: bool = False,
     temperature: float | None = None,
+    soft_radius: int | None = 2,
 ) -> StereoOutput:
     """Dense stereo matching of a rectified pair; disparity, validity and per-pixel variance.
 
@@ -223,6 +235,8 @@ def match_stereo(
         differentiable: disparity by soft-argmin over ``-cost / temperature`` (gradients reach
             both images); the checks still use the hard winner.
         temperature: soft-argmin temperature in cost units (None: per-cost default).
+        soft_radius: the soft-argmin averages the candidates within this many px of the hard winner
+            (None: the whole range, which multimodal real-image costs bias badly).
 
     Returns:
         :class:`StereoOutput` ``(disparity, valid, variance)``, each ``(B, 1, H, W)``.
@@ -235,14 +249,14 @@ def match_stereo(
     (torch.Size([2, 1, 16, 24]), torch.bool, torch.Size([2, 1, 16, 24]))
     """
     _check_inputs(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel_fit, sgm_paths,
-                  temperature, differentiable)
+                  temperature, differentiable, soft_radius, census_window)
     grey_l, grey_r = to_gray(left), to_gray(right)
     feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
     b, _, h, w = grey_l.shape
     num = max_disparity - min_disparity
     opts = {
         "subpixel": subpixel, "subpixel_fit": subpixel_fit, "lr_check": lr_check, "lr_threshold": lr_threshold,
-        "uniqueness_ratio": uniqueness_ratio, "differentiable": differentiable,
+        "uniqueness_ratio": uniqueness_ratio, "differentiable": differentiable, "soft_radius": soft_radius,
         "temperature": temperature if temperature is not None else _TEMPERATURES[cost],
         "cost_floor": {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}[cost],
         "scale": float(block_size * block_size),

@@ -52,6 +52,7 @@ def test_colour_input_is_converted_to_grey(pair):
 @pytest.mark.parametrize("kw", [
     {}, {"cost": "zncc"}, {"cost": "census"}, {"aggregation": "sgm", "block_size": 5},
     {"aggregation": "sgm", "sgm_paths": 8, "cost": "census", "block_size": 3}, {"subpixel": False},
+    {"cost": "census", "census_window": 7}, {"cost": "census", "census_window": 3},
     {"differentiable": True}, {"lr_check": False, "uniqueness_ratio": 0.0, "min_disparity": 3},
 ])
 def test_options_run_and_respect_range(pair, kw):
@@ -105,6 +106,10 @@ def test_exceptions():
         block_matching(img, img, 8, aggregation="tree")
     with pytest.raises(ValueRangeError, match="sgm_paths"):
         block_matching(img, img, 8, aggregation="sgm", sgm_paths=6)
+    with pytest.raises(ValueRangeError, match="census_window"):
+        block_matching(img, img, 8, cost="census", census_window=9)
+    with pytest.raises(ValueRangeError, match="soft_radius"):
+        block_matching(img, img, 8, differentiable=True, soft_radius=0)
     with pytest.raises(ValueRangeError, match="temperature"):
         block_matching(img, img, 8, differentiable=True, temperature=0.0)
 
@@ -133,6 +138,7 @@ def _tiny_pair(seed: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
     {"subpixel": True},
     {"subpixel": True, "subpixel_fit": "parabola", "cost": "zncc"},
     {"differentiable": True, "aggregation": "sgm"},
+    {"differentiable": True, "soft_radius": None},
 ])
 def test_gradcheck(kw):
     left, right = _tiny_pair()

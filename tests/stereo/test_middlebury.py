@@ -46,7 +46,7 @@ def _opencv_sgbm(grey_l, grey_r, block_size=5):
     return raw.astype(np.float32) / 16.0, raw >= 0
 
 
-@pytest.mark.parametrize("block_size", [9, 15])
+@pytest.mark.parametrize("block_size", [9, pytest.param(15, marks=pytest.mark.slow)])
 def test_default_matcher_beats_opencv_bm(motorcycle, block_size):
     grey_l, grey_r, gt, known, left, right = motorcycle
     out = match_stereo(left, right, NUM_DISPARITIES, block_size=block_size)
