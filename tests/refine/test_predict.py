@@ -336,13 +336,15 @@ def test_gradcheck(mode):
     assert torch.autograd.gradcheck(f, (d, var), eps=1e-6, atol=1e-6)
 
 
-def test_gradcheck_motion_soft():
+@pytest.mark.parametrize("mode", ["hard", "soft"])
+@pytest.mark.parametrize("iterations", [0, 2])
+def test_gradcheck_motion(mode, iterations):
     d, M, K, b = _tiny_inputs()
     t = M[:, :3, 3].clone().requires_grad_(True)
 
     def f(trans):
         motion = torch.cat([torch.cat([M[:, :3, :3], trans[..., None]], -1), M[:, 3:]], 1)
-        return predict_disparity(d, motion, K, b, mode="soft", refine_iterations=0).disparity
+        return predict_disparity(d, motion, K, b, mode=mode, refine_iterations=iterations).disparity
 
     assert torch.autograd.gradcheck(f, (t,), eps=1e-6, atol=1e-6)
 
