@@ -194,10 +194,9 @@ def _cost_map(
         ssd = (w_sq - 2 * corr + t_sq) / area
         return ssd.clamp_min(0).view(b, n, k, k)
     # ZNCC = sum (w - mean_w) t0 / sqrt(sum (w - mean_w)^2 * sum t0^2), as sum mean_w * t0 = 0.
-    w_var = (w_sq - w_sum * w_sum / area).clamp_min(0)
+    w_var = torch.addcmul(w_sq, w_sum, w_sum, value=-1.0 / area).clamp_min(0)
     # Clamp under the square root: a flat patch has zero variance (ZNCC 0, finite gradient).
-    den = torch.sqrt((w_var * t_sq).clamp_min(eps))
-    return -(corr / den).view(b, n, k, k)
+    return (-corr * torch.rsqrt((w_var * t_sq).clamp_min(eps))).view(b, n, k, k)
 
 
 def _parabola(cm: torch.Tensor, minus: torch.Tensor, plus: torch.Tensor) -> torch.Tensor:
@@ -216,20 +215,17 @@ def _best_shift(cost_map: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, tor
     b, n, k, _ = cost_map.shape
     flat = cost_map.reshape(b, n, k * k)
     best, idx = flat.min(dim=-1)
-    iy, ix = idx // k, idx % k
-    on_edge = (ix == 0) | (iy == 0) | (ix == k - 1) | (iy == k - 1)
-
-    def at(dx: int, dy: int) -> torch.Tensor:
-        j = (iy + dy).clamp(0, k - 1) * k + (ix + dx).clamp(0, k - 1)
-        return flat.gather(-1, j.unsqueeze(-1)).squeeze(-1)
-
-    sx = _parabola(best, at(-1, 0), at(1, 0))
-    sy = _parabola(best, at(0, -1), at(0, 1))
-    # No sub-pixel step along an axis whose minimum is on the edge (the parabola would be one-sided).
-    sx = torch.where((ix == 0) | (ix == k - 1), torch.zeros_like(sx), sx)
-    sy = torch.where((iy == 0) | (iy == k - 1), torch.zeros_like(sy), sy)
-    r = (k - 1) / 2
-    shift = torch.stack([ix.to(cost_map.dtype) - r + sx, iy.to(cost_map.dtype) - r + sy], dim=-1)
+    ixy = torch.stack([idx % k, idx // k], dim=-1)  # (B, N, 2) integer (x, y) of the minimum
+    edge_xy = (ixy == 0) | (ixy == k - 1)
+    on_edge = edge_xy.any(dim=-1)
+    # The four neighbours (x-1, x+1, y-1, y+1) in one gather. Indices are clamped into the map;
+    # on an edge they may point at a wrong cell, but that axis gets no sub-pixel step anyway
+    # (the parabola would be one-sided).
+    steps = torch.tensor([-1, 1, -k, k], device=idx.device)
+    nb = flat.gather(-1, (idx.unsqueeze(-1) + steps).clamp(0, k * k - 1))  # (B, N, 4)
+    sub = _parabola(best.unsqueeze(-1), nb[..., 0::2], nb[..., 1::2])  # (B, N, 2)
+    sub = torch.where(edge_xy, torch.zeros_like(sub), sub)
+    shift = ixy.to(cost_map.dtype) - (k - 1) / 2 + sub
     return shift, best, on_edge
 
 
