@@ -1,0 +1,449 @@
+"""The predict-and-correct loop: :class:`EgoMotionRefiner` and :func:`refine_sequence`.
+
+One frame (PAPER.md, "The loop"; DESIGN.md, "Data flow"):
+
+1. track the features of frame t-1 into frame t (search centred where the previous
+   motion would carry them);
+2. estimate the ego-motion from the tracks with Z from the previous disparity (eq. 2, 3);
+3. predict frame t's disparity by moving every 3-D point and splatting it (eq. 1);
+4. on verification frames, run stereo and correct the prediction with it (paper's gate and
+   gain, or per-pixel Kalman fusion);
+5. top the feature set up when tracks thin out.
+
+The state is explicit: ``out, state = refiner(left, right, K, baseline, state)``; nothing is
+kept on the module between calls, so one refiner serves many sequences, and a state can be
+saved, inspected or detached.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from kornia.color import rgb_to_grayscale
+from torch import nn
+
+from ..core import (
+    DeviceError,
+    ShapeError,
+    StateError,
+    ValueRangeError,
+    check_choice,
+    check_image,
+    check_positive,
+    check_shape,
+)
+from ..features import replenish, track
+from ..geometry import disparity_to_depth, project, transform_points, unproject
+from ..motion import solve_ego_motion
+from ..stereo import match_stereo
+from .correct import correct_disparity
+from .predict import predict_disparity
+
+__all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
+
+
+class RefinerState(NamedTuple):
+    """What one frame hands to the next. All tensors are batched; ``frame`` counts calls.
+
+    Attributes:
+        image: ``(B, 1, H, W)`` previous left image, grey.
+        keypoints: ``(B, N, 2)`` feature positions in ``image``.
+        weights: ``(B, N)`` live-track weights (0 = empty slot).
+        disparity: ``(B, 1, H, W)`` previous refined disparity.
+        variance: ``(B, 1, H, W)`` its per-pixel variance, px^2.
+        valid: ``(B, 1, H, W)`` where ``disparity`` holds a real (not hole-filled) value.
+        outlier_count: ``(B, 1, H, W)`` consecutive gated-out verifications per pixel (Kalman reset).
+        motion: ``(B, 4, 4)`` last estimated ``camera_t_T_camera_{t-1}`` (centres the next search).
+        frame: index of the frame this state was produced on.
+        since_stereo: frames since stereo last ran (0 = it ran on ``frame``).
+    """
+
+    image: torch.Tensor
+    keypoints: torch.Tensor
+    weights: torch.Tensor
+    disparity: torch.Tensor
+    variance: torch.Tensor
+    valid: torch.Tensor
+    outlier_count: torch.Tensor
+    motion: torch.Tensor
+    frame: int
+    since_stereo: int
+
+
+class RefinerOutput(NamedTuple):
+    """The refiner's answer for one frame.
+
+    Attributes:
+        disparity: ``(B, 1, H, W)`` refined disparity, px; hole-filled pixels hold a value too.
+        valid: ``(B, 1, H, W)`` bool, pixels with a real (measured or predicted) disparity.
+        motion: ``(B, 4, 4)`` ``camera_t_T_camera_{t-1}``; identity on the first frame and where
+            the motion could not be estimated (see ``motion_ok``).
+        stereo_ran: whether stereo matching ran on this frame.
+        variance: ``(B, 1, H, W)`` per-pixel variance, px^2.
+        confidence: ``(B, 1, H, W)`` in [0, 1]; low on hole-filled pixels.
+        motion_ok: ``(B,)`` bool, the ego-motion solve succeeded (True on the first frame).
+        num_tracks: ``(B,)`` features that were tracked into this frame.
+    """
+
+    disparity: torch.Tensor
+    valid: torch.Tensor
+    motion: torch.Tensor
+    stereo_ran: bool
+    variance: torch.Tensor
+    confidence: torch.Tensor
+    motion_ok: torch.Tensor
+    num_tracks: torch.Tensor
+
+
+def _grey(image: torch.Tensor) -> torch.Tensor:
+    return rgb_to_grayscale(image) if image.shape[1] == 3 else image
+
+
+def _sample(map_: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples ``(B, N)`` of ``map_`` ``(B, 1, H, W)`` at pixel positions ``(B, N, 2)``."""
+    H, W = map_.shape[-2:]
+    scale = torch.tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)], device=points.device, dtype=points.dtype)
+    grid = (points * scale - 1.0)[:, :, None, :]
+    return F.grid_sample(map_, grid, mode="bilinear", padding_mode="border", align_corners=True)[:, 0, :, 0]
+
+
+def _expected_positions(
+    keypoints: torch.Tensor,
+    disparity: torch.Tensor,
+    valid: torch.Tensor,
+    motion: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+) -> torch.Tensor:
+    """Where ``keypoints`` land if the rig repeats ``motion`` (constant velocity): centres the track search."""
+    d = _sample(disparity, keypoints)
+    ok = (_sample(valid.to(disparity.dtype), keypoints) > 0.99) & (d > 0)
+    depth = disparity_to_depth(d, K[:, 0, 0], baseline)
+    moved = project(transform_points(motion, unproject(keypoints, depth, K)), K)
+    return torch.where(ok[..., None] & torch.isfinite(moved), moved, keypoints)
+
+
+class EgoMotionRefiner(nn.Module):
+    """Sub-pixel disparity for a stereo video with stereo matching run on a fraction of the frames.
+
+    ``out, state = refiner(left, right, K, baseline, state)``, once per frame, ``state=None`` on
+    the first. Stereo runs on frame 0, then every ``verify_every``-th frame; with
+    ``adaptive=True`` also when the predicted map's coverage or mean confidence drops below
+    ``min_coverage`` / ``min_confidence``; and always when the ego-motion of some batch item
+    could not be estimated (the output says so in ``stereo_ran`` and ``motion_ok``). Stereo
+    and the schedule act on the whole batch at once.
+
+    Args:
+        max_disparity: stereo search range ``[min_disparity, max_disparity)``.
+        verify_every: run stereo every i-th frame (``i`` in the paper); 1 = every frame.
+        fusion: ``"paper"`` (gate/gain rule of PAPER.md, step 4) or ``"kalman"`` (per-pixel variance).
+        motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` or ``"exact"`` (SE(3) reprojection).
+        gate, gain: the paper rule's 0.5 px gate and 0.4 gain.
+        adaptive, min_coverage, min_confidence: the adaptive verification schedule.
+        max_features, min_tracks: feature budget, and the live-track count under which detection re-runs.
+        splat: ``"hard"`` z-buffer splatting or ``"soft"`` (differentiable) in the prediction.
+        min_disparity, block_size, stereo_cost, aggregation: passed to :func:`egorefine.stereo.match_stereo`.
+        process_noise: variance (px^2) added per predicted frame in Kalman mode.
+
+    Example:
+        >>> from egorefine.data import render_sequence
+        >>> seq = render_sequence(num_frames=3, height=60, width=80)
+        >>> refiner = EgoMotionRefiner(max_disparity=16, verify_every=2, max_features=64, min_tracks=16)
+        >>> K, b = seq.K[None], torch.tensor([seq.baseline])
+        >>> state = None
+        >>> for t in range(3):
+        ...     out, state = refiner(seq.left[t:t + 1], seq.right[t:t + 1], K, b, state)
+        >>> out.disparity.shape, out.motion.shape, out.stereo_ran
+        (torch.Size([1, 1, 60, 80]), torch.Size([1, 4, 4]), True)
+    """
+
+    def __init__(
+        self,
+        max_disparity: int = 64,
+        verify_every: int = 5,
+        fusion: str = "paper",
+        motion_method: str = "exact",
+        gate: float = 0.5,
+        gain: float = 0.4,
+        adaptive: bool = False,
+        min_coverage: float = 0.85,
+        min_confidence: float = 0.5,
+        max_features: int = 500,
+        min_tracks: int = 200,
+        splat: str = "hard",
+        min_disparity: int = 0,
+        block_size: int | None = None,
+        stereo_cost: str | None = None,
+        aggregation: str | None = None,
+        process_noise: float = 0.01,
+    ) -> None:
+        super().__init__()
+        check_choice(fusion, ("paper", "kalman"), "fusion")
+        check_choice(motion_method, ("linear", "robust", "exact"), "motion_method")
+        check_choice(splat, ("hard", "soft"), "splat")
+        if int(verify_every) < 1:
+            raise ValueRangeError(f"verify_every: expected an integer >= 1, got {verify_every}")
+        if int(max_disparity) <= int(min_disparity):
+            raise ValueRangeError(f"max_disparity: must exceed min_disparity={min_disparity}, got {max_disparity}")
+        self.max_disparity = int(max_disparity)
+        self.min_disparity = int(min_disparity)
+        self.verify_every = int(verify_every)
+        self.fusion = fusion
+        self.motion_method = motion_method
+        self.gate = float(gate)
+        self.gain = float(gain)
+        self.adaptive = bool(adaptive)
+        self.min_coverage = float(min_coverage)
+        self.min_confidence = float(min_confidence)
+        self.max_features = int(max_features)
+        self.min_tracks = int(min_tracks)
+        self.splat = splat
+        self.process_noise = float(process_noise)
+        # Only the matcher options the caller set are passed on: the matcher's own defaults apply otherwise.
+        self.stereo_options = {
+            k: v
+            for k, v in {"block_size": block_size, "cost": stereo_cost, "aggregation": aggregation}.items()
+            if v is not None
+        }
+
+    # -- checks ------------------------------------------------------------------------------------------------
+    def _check_inputs(
+        self,
+        left: torch.Tensor,
+        right: torch.Tensor | None,
+        K: torch.Tensor,
+        baseline: torch.Tensor,
+        state: RefinerState | None,
+    ) -> None:
+        dims = check_image(left, "left")
+        if right is not None:
+            check_image(right, "right", dims)
+            if right.device != left.device:
+                raise DeviceError(f"right: on {right.device}, but left is on {left.device}")
+        check_shape(K, ["B", "3", "3"], "K", dims)
+        check_shape(baseline, ["B"], "baseline", dims)
+        check_positive(baseline, "baseline")
+        for name, t in (("K", K), ("baseline", baseline)):
+            if t.device != left.device:
+                raise DeviceError(f"{name}: on {t.device}, but left is on {left.device}")
+        if state is None:
+            return
+        if not isinstance(state, RefinerState):
+            raise StateError(f"state: expected a RefinerState or None, got {type(state).__name__}")
+        prev = state.image
+        if prev.shape[-2:] != left.shape[-2:]:
+            raise StateError(
+                f"state: carried from a {tuple(prev.shape[-2:])} sequence, but left is {tuple(left.shape[-2:])};"
+                " frames may not change size mid-sequence (start a new one with state=None)"
+            )
+        if prev.shape[0] != left.shape[0]:
+            raise StateError(f"state: carried for batch size {prev.shape[0]}, but left has {left.shape[0]}")
+        if prev.device != left.device:
+            raise StateError(f"state: on {prev.device}, but left is on {left.device}; frames may not change device")
+
+    def _needs_stereo(self, frame: int, motion_ok: torch.Tensor, coverage: torch.Tensor, conf: torch.Tensor) -> bool:
+        if frame % self.verify_every == 0:
+            return True
+        # One host sync per frame: the schedule decides whether a whole matcher call happens.
+        trouble = ~motion_ok
+        if self.adaptive:
+            trouble = trouble | (coverage < self.min_coverage) | (conf < self.min_confidence)
+        return bool(trouble.any())
+
+    def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int):
+        if right is None:
+            raise ValueRangeError(f"right: frame {frame} needs stereo matching, but right is None")
+        return match_stereo(
+            left, _grey(right), self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
+        )
+
+    # -- one frame ---------------------------------------------------------------------------------------------
+    def forward(
+        self,
+        left: torch.Tensor,
+        right: torch.Tensor | None,
+        K: torch.Tensor,
+        baseline: torch.Tensor,
+        state: RefinerState | None = None,
+    ) -> tuple[RefinerOutput, RefinerState]:
+        """Refine one frame.
+
+        Args:
+            left: ``(B, 1|3, H, W)`` left image in [0, 1].
+            right: ``(B, 1|3, H, W)`` right image, or None on frames that do not need stereo.
+            K: ``(B, 3, 3)`` rectified left intrinsics.
+            baseline: ``(B,)`` metres.
+            state: the previous call's state, or None to start a sequence.
+
+        Returns:
+            ``(RefinerOutput, RefinerState)``.
+        """
+        self._check_inputs(left, right, K, baseline, state)
+        grey = _grey(left)
+        B = grey.shape[0]
+        eye = torch.eye(4, device=grey.device, dtype=grey.dtype).expand(B, 4, 4)
+        if state is None:
+            return self._first_frame(grey, right, eye)
+
+        frame = state.frame + 1
+        # 1. track features of t-1 into t, search centred by constant velocity.
+        expected = _expected_positions(state.keypoints, state.disparity, state.valid, state.motion, K, baseline)
+        tracked = track(state.image, grey, state.keypoints, state.weights, predicted=expected)
+        # 2. ego-motion from the tracks (eq. 2, 3), Z from the previous disparity.
+        ego = solve_ego_motion(
+            state.keypoints,
+            tracked.keypoints,
+            state.disparity,
+            K,
+            baseline,
+            weights=tracked.weights,
+            valid_prev=state.valid,
+            method=self.motion_method,
+        )
+        ok = ego.ok
+        motion = torch.where(ok[:, None, None], ego.motion, eye)
+        # 3. predict disparity (eq. 1 + splat).
+        pred = predict_disparity(
+            state.disparity,
+            motion,
+            K,
+            baseline,
+            variance=state.variance,
+            valid=state.valid,
+            mode=self.splat,
+            process_noise=self.process_noise,
+        )
+        coverage = pred.valid.flatten(1).float().mean(1)
+        conf = pred.confidence.flatten(1).mean(1)
+        stereo_ran = self._needs_stereo(frame, ok, coverage, conf)
+
+        disparity, variance, valid, outliers = pred.disparity, pred.variance, pred.valid, state.outlier_count
+        confidence = pred.confidence
+        if stereo_ran:
+            # 4. verify against fresh stereo and correct.
+            meas = self._stereo(grey, right, frame)
+            cor = correct_disparity(
+                pred.disparity,
+                meas.disparity,
+                meas.valid,
+                fusion=self.fusion,
+                gate=self.gate,
+                gain=self.gain,
+                predicted_variance=pred.variance,
+                measured_variance=meas.variance,
+                predicted_valid=pred.valid,
+                outlier_count=state.outlier_count,
+            )
+            # Where the motion failed the prediction is meaningless: restart that item from stereo.
+            bad = (~ok)[:, None, None, None]
+            disparity = torch.where(bad, meas.disparity, cor.disparity)
+            variance = torch.where(bad, meas.variance, cor.variance)
+            valid = torch.where(bad, meas.valid, cor.valid)
+            outliers = torch.where(bad, torch.zeros_like(cor.outlier_count), cor.outlier_count)
+            confidence = torch.where(valid, torch.ones_like(confidence), confidence)
+        # 5. keep the tracks, top up when they thin out.
+        keypoints, weights = tracked.keypoints, tracked.weights
+        live = (weights > 0).sum(1)
+        if bool((live < self.min_tracks).any()):
+            keypoints, weights = replenish(grey, keypoints, weights, max_features=self.max_features)
+
+        out = RefinerOutput(disparity, valid, motion, stereo_ran, variance, confidence, ok, live)
+        new_state = RefinerState(
+            grey, keypoints, weights, disparity, variance, valid, outliers, motion, frame,
+            0 if stereo_ran else state.since_stereo + 1,
+        )
+        return out, new_state
+
+    def _first_frame(
+        self, grey: torch.Tensor, right: torch.Tensor | None, eye: torch.Tensor
+    ) -> tuple[RefinerOutput, RefinerState]:
+        B = grey.shape[0]
+        meas = self._stereo(grey, right, 0)
+        empty_kp = torch.zeros(B, self.max_features, 2, device=grey.device, dtype=grey.dtype)
+        empty_w = torch.zeros(B, self.max_features, device=grey.device, dtype=grey.dtype)
+        keypoints, weights = replenish(grey, empty_kp, empty_w, max_features=self.max_features)
+        ok = torch.ones(B, dtype=torch.bool, device=grey.device)
+        confidence = meas.valid.to(grey.dtype)
+        out = RefinerOutput(
+            meas.disparity, meas.valid, eye.clone(), True, meas.variance, confidence, ok, (weights > 0).sum(1)
+        )
+        state = RefinerState(
+            grey, keypoints, weights, meas.disparity, meas.variance, meas.valid,
+            torch.zeros_like(meas.variance), eye.clone(), 0, 0,
+        )
+        return out, state
+
+
+class SequenceResult(NamedTuple):
+    """Per-frame outputs of :func:`refine_sequence`, stacked along a leading time axis.
+
+    Attributes:
+        disparity: ``(T, B, 1, H, W)``.
+        valid: ``(T, B, 1, H, W)`` bool.
+        motion: ``(T, B, 4, 4)`` ``camera_t_T_camera_{t-1}`` (identity at t = 0).
+        stereo_ran: ``(T,)`` bool.
+        variance: ``(T, B, 1, H, W)``.
+        motion_ok: ``(T, B)`` bool.
+    """
+
+    disparity: torch.Tensor
+    valid: torch.Tensor
+    motion: torch.Tensor
+    stereo_ran: torch.Tensor
+    variance: torch.Tensor
+    motion_ok: torch.Tensor
+
+
+def refine_sequence(
+    lefts: torch.Tensor,
+    rights: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+    verify_every: int = 5,
+    show_progress: bool = False,
+    refiner: EgoMotionRefiner | None = None,
+    **options,
+) -> SequenceResult:
+    """Run :class:`EgoMotionRefiner` over a whole stereo video.
+
+    Args:
+        lefts: ``(T, B, C, H, W)`` left images (``(T, C, H, W)`` is read as B = 1).
+        rights: right images of the same shape (only verification frames are read).
+        K: ``(B, 3, 3)`` (or ``(3, 3)``) intrinsics; baseline ``(B,)`` (or a float) metres.
+        verify_every: stereo every i-th frame.
+        show_progress: print ``frame t/T`` to stderr.
+        refiner: a configured refiner to use instead of building one from ``options``.
+        **options: keyword arguments of :class:`EgoMotionRefiner`.
+
+    Returns:
+        :class:`SequenceResult`.
+    """
+    if lefts.dim() == 4:
+        lefts, rights = lefts[:, None], rights[:, None]
+    check_shape(lefts, ["T", "B", "1|3", "H", "W"], "lefts")
+    if rights.shape != lefts.shape:
+        raise ShapeError(f"rights: expected the shape of lefts {tuple(lefts.shape)}, got {tuple(rights.shape)}")
+    T, B = lefts.shape[:2]
+    if K.dim() == 2:
+        K = K.expand(B, 3, 3)
+    if not isinstance(baseline, torch.Tensor):
+        baseline = torch.full((B,), float(baseline), device=lefts.device, dtype=lefts.dtype)
+    refiner = EgoMotionRefiner(verify_every=verify_every, **options) if refiner is None else refiner
+    outs = []
+    state = None
+    for t in range(T):
+        out, state = refiner(lefts[t], rights[t], K, baseline, state)
+        outs.append(out)
+        if show_progress:
+            print(f"\rframe {t + 1}/{T}", end="" if t + 1 < T else "\n", file=sys.stderr, flush=True)
+    return SequenceResult(
+        torch.stack([o.disparity for o in outs]),
+        torch.stack([o.valid for o in outs]),
+        torch.stack([o.motion for o in outs]),
+        torch.tensor([o.stereo_ran for o in outs]),
+        torch.stack([o.variance for o in outs]),
+        torch.stack([o.motion_ok for o in outs]),
+    )
