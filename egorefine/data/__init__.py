@@ -1,12 +1,24 @@
 """Data: a synthetic stereo-video renderer with exact ground truth, file formats and sequence loaders."""
 
+from .euroc import EurocSequence, load_euroc, read_euroc_sensor
+from .folder import ImageFolderSequence, read_grey
+from .io import read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm
 from .synthetic import MOTIONS, PRESETS, SCENES, RigPreset, StereoSequence, render_sequence
 
 __all__ = [
     "MOTIONS",
     "PRESETS",
     "SCENES",
+    "EurocSequence",
+    "ImageFolderSequence",
     "RigPreset",
     "StereoSequence",
+    "load_euroc",
+    "read_euroc_sensor",
+    "read_grey",
+    "read_kitti_disparity",
+    "read_pfm",
     "render_sequence",
+    "write_kitti_disparity",
+    "write_pfm",
 ]

@@ -292,8 +292,8 @@ def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.rando
     s = b.s
     if scene == "corridor":
         b.room(half_width=1.5 * s, height_above=1.5 * s, back=3.0 * s)
-        b.side_objects(clearance=0.55 * s, spacing=1.0 * s, tall=1.5 * s)
-        b.hanging(spacing=2.5 * s, clearance_above=0.45 * s)
+        b.side_objects(clearance=0.7 * s, spacing=1.2 * s, tall=1.5 * s)
+        b.hanging(spacing=3.0 * s, clearance_above=0.55 * s)
         # A few obstacles on the end wall region make the far field less flat.
         for _ in range(3):
             half = np.array([rng.uniform(0.2, 0.5), rng.uniform(0.3, 0.9), rng.uniform(0.2, 0.5)]) * s
@@ -331,14 +331,16 @@ def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.rando
     return b.boxes
 
 
-def _lights(boxes: list[_Box], poses: np.ndarray, preset: RigPreset) -> np.ndarray:
-    """Point lights under the ceiling along the path, ``(L, 3)``."""
+def _lights(scene: str, boxes: list[_Box], poses: np.ndarray, preset: RigPreset) -> np.ndarray:
+    """Point lights under the ceiling along the path, ``(L, 3)``; none outdoors (the sun is directional)."""
+    if scene == "street":
+        return np.zeros((0, 3))
     room = boxes[0]
     y_ceiling = room.centre[1] - room.half[1]
     z0 = room.centre[2] - room.half[2]
     z1 = room.centre[2] + room.half[2]
     s = preset.scale
-    zs = np.arange(z0 + 1.5 * s, z1, 3.5 * s)
+    zs = np.arange(z0 + 2.0 * s, z1, 6.0 * s)
     pos = poses[:, :3, 3]
     xc = 0.5 * (pos[:, 0].min() + pos[:, 0].max())
     xs = xc + 0.6 * s * np.where(np.arange(len(zs)) % 2 == 0, 1.0, -1.0)
@@ -349,189 +351,227 @@ def _lights(boxes: list[_Box], poses: np.ndarray, preset: RigPreset) -> np.ndarr
 # ------------------------------------------------------------------------------------------------ ray casting
 
 
-class _Renderer:
-    """Ray caster and shader for one scene (all tensors on the render device)."""
+def _faces(boxes: list[_Box]) -> dict[str, np.ndarray]:
+    """Every box face as a rectangle facing its visible side: centre, unit normal, in-plane axes, half sizes.
 
-    _OTHER_AXES = ((1, 2), (0, 2), (0, 1))
+    Face ``6 b + 2 k + (side > 0)`` is the face of box ``b`` normal to its axis ``k``. Normals point out of solid
+    boxes and into the room, so a face can be seen only from the side its normal points to.
+    """
+    other = ((1, 2), (0, 2), (0, 1))
+    centre, normal, eu, ev, half = [], [], [], [], []
+    for b in boxes:
+        for k in range(3):
+            for side in (-1.0, 1.0):
+                i, j = other[k]
+                centre.append(b.centre + side * b.half[k] * b.rot[:, k])
+                normal.append((-side if b.inside else side) * b.rot[:, k])
+                eu.append(b.rot[:, i])
+                ev.append(b.rot[:, j])
+                half.append((b.half[i], b.half[j]))
+    return {k: np.asarray(v, dtype=np.float64) for k, v in
+            (("centre", centre), ("normal", normal), ("eu", eu), ("ev", ev), ("half", half))}
+
+
+class _Renderer:
+    """Scan-converts box faces with exact per-pixel depth (a w-buffer) and shades them (all on the render device).
+
+    For a planar face, inverse depth ``1 / Z`` and ``u / Z``, ``v / Z`` (in-plane coordinates over depth) are affine
+    functions of the pixel coordinates, so intersecting every pixel's ray with a face costs a few multiply-adds
+    per pixel, evaluated only inside the face's projected bounding rectangle.
+    """
 
     def __init__(self, boxes: list[_Box], lights: np.ndarray, preset: RigPreset, K: np.ndarray,
                  height: int, width: int, rng: np.random.Generator, texture_seed: int,
                  device: torch.device, dtype: torch.dtype) -> None:
         self.device, self.dtype = device, dtype
         self.h, self.w = height, width
-        self.K = K
-        self.f, self.cx, self.cy = K[0, 0], K[0, 2], K[1, 2]
-        self.np_boxes = boxes
+        self.f, self.cx, self.cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 2])
         self.scale = preset.scale
+        self.np_faces = _faces(boxes)
+        n_faces = len(self.np_faces["centre"])
 
         def t(x: np.ndarray) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x), device=device, dtype=dtype)
 
-        self.centre = t(np.stack([b.centre for b in boxes]))
-        self.rot = t(np.stack([b.rot for b in boxes]))
-        self.half = t(np.stack([b.half for b in boxes]))
-        self.inside = torch.as_tensor([b.inside for b in boxes], device=device)
-        n_faces = 6 * len(boxes)
+        self.face_centre = t(self.np_faces["centre"])
+        self.face_normal = t(self.np_faces["normal"])
+        self.face_eu = t(self.np_faces["eu"])
+        self.face_ev = t(self.np_faces["ev"])
         ang = rng.uniform(0, 2 * math.pi, n_faces)
         scl = rng.uniform(0.75, 1.35, n_faces) * preset.texel
         off = rng.uniform(0, 4096, (n_faces, 2))
-        # Texel coordinates = A_f @ (u, v) + off_f with A_f a rotation over the texel size.
+        # Texel coordinates = A_f @ (u, v) + off_f, A_f a rotation over the face's texel size.
         A = np.stack([np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)], -1).reshape(-1, 2, 2) / scl[:, None, None]
         self.face_A = t(A)
         self.face_off = t(off)
         self.face_texel = t(scl)
         self.face_gain = t(rng.uniform(0.7, 1.05, n_faces))
         self.face_bias = t(rng.uniform(-0.05, 0.05, n_faces))
+        # A directional light (the sun outdoors, a window indoors): constant over each planar face.
+        sun = np.array([0.4, -0.8, 0.45])
+        sun_term = np.clip(self.np_faces["normal"] @ (sun / np.linalg.norm(sun)), 0.0, None)
+        self.face_sun = t(sun_term)
+        self.sun_weight = 0.45 if len(lights) == 0 else 0.15
         self.lights = t(lights)
         self.light_range = 4.0 * preset.scale
         self.texture = make_texture(texture_seed, device=str(device), dtype=dtype)
-        self.eps = 1e-6 * preset.scale
+        self.xs = torch.arange(width, device=device, dtype=dtype)
+        self.ys = torch.arange(height, device=device, dtype=dtype)
 
-    # -- culling: pixel rectangle covered by each box in a camera
+    # -- per camera: affine coefficients and bounding rectangles of the faces
 
-    def rects(self, world_T_cam: np.ndarray) -> list[tuple[int, int, int, int] | None]:
-        """Per box ``(x0, x1, y0, y1)`` (half-open, clipped) or ``None`` when the box cannot be seen."""
-        R, c = world_T_cam[:3, :3], world_T_cam[:3, 3]
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-        out: list[tuple[int, int, int, int] | None] = []
+    def setup(self, world_T_cam: np.ndarray) -> list[tuple[int, tuple, int, int, int, int]]:
+        """Visible faces for a camera: ``(face, coefficients, x0, x1, y0, y1)`` with half-open pixel rectangles.
+
+        ``coefficients`` are three affine maps ``(a_x, a_y, c)`` of the pixel coordinates: ``1 / Z``, ``u / Z`` and
+        ``v / Z`` along each pixel's ray, and the face's half sizes ``(h_u, h_v)``.
+        """
+        R, o = world_T_cam[:3, :3], world_T_cam[:3, 3]
+        F = self.np_faces
+        rel = F["centre"] - o  # (F, 3)
+        dist = (rel * F["normal"]).sum(-1)  # < 0 when the camera is on the face's visible side
         near = 1e-3 * self.scale
-        for b in self.np_boxes:
-            if b.inside:
-                out.append((0, self.w, 0, self.h))
+        f, cx, cy = self.f, self.cx, self.cy
+        out = []
+        corners_uv = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+        for i in np.nonzero(dist < -1e-9 * self.scale)[0]:  # loop over front-facing faces
+            # Clip the face rectangle to the near plane, then bound its projection.
+            corners = F["centre"][i] + (corners_uv * F["half"][i]) @ np.stack([F["eu"][i], F["ev"][i]])
+            cam = (corners - o) @ R
+            poly = []
+            for a, b in zip(cam, np.roll(cam, -1, axis=0), strict=True):
+                if a[2] >= near:
+                    poly.append(a)
+                if (a[2] >= near) != (b[2] >= near):
+                    poly.append(a + (near - a[2]) / (b[2] - a[2]) * (b - a))
+            if not poly:
                 continue
-            corners = b.centre + (signs * b.half) @ b.rot.T
-            cam = (corners - c) @ R
-            z = cam[:, 2]
-            if (z <= near).all():
-                out.append(None)
+            poly = np.asarray(poly)
+            x = f * poly[:, 0] / poly[:, 2] + cx
+            y = f * poly[:, 1] / poly[:, 2] + cy
+            x0, x1 = max(math.floor(x.min()) - 1, 0), min(math.ceil(x.max()) + 2, self.w)
+            y0, y1 = max(math.floor(y.min()) - 1, 0), min(math.ceil(y.max()) + 2, self.h)
+            if x0 >= x1 or y0 >= y1:
                 continue
-            if (z <= near).any():
-                out.append((0, self.w, 0, self.h))
-                continue
-            x = self.f * cam[:, 0] / z + self.cx
-            y = self.f * cam[:, 1] / z + self.cy
-            x0, x1 = max(int(math.floor(x.min())) - 1, 0), min(int(math.ceil(x.max())) + 2, self.w)
-            y0, y1 = max(int(math.floor(y.min())) - 1, 0), min(int(math.ceil(y.max())) + 2, self.h)
-            out.append((x0, x1, y0, y1) if (x0 < x1 and y0 < y1) else None)
+
+            def affine(w: np.ndarray) -> np.ndarray:
+                # w . d(x, y) with d = R [(x - cx) / f, (y - cy) / f, 1]: affine in (x, y).
+                m = R.T @ w
+                return np.array([m[0] / f, m[1] / f, m[2] - m[0] * cx / f - m[1] * cy / f])
+
+            inv = affine(F["normal"][i]) / dist[i]  # 1 / t = (n . d) / ((p0 - o) . n)
+            u = -(rel[i] @ F["eu"][i]) * inv + affine(F["eu"][i])  # u / t = (o - p0) . e_u / t + e_u . d
+            v = -(rel[i] @ F["ev"][i]) * inv + affine(F["ev"][i])
+            coef = (*inv.tolist(), *u.tolist(), *v.tolist(), float(F["half"][i][0]), float(F["half"][i][1]))
+            out.append((int(i), coef, x0, x1, y0, y1))
         return out
 
-    # -- ray/box intersection
+    @staticmethod
+    def _inv_depth(coef: tuple, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Inverse depth of the face along the rays through pixels ``(x, y)`` (broadcast); 0 where they miss it."""
+        ia, ib, ic, ua, ub, uc, va, vb, vc, hu, hv = coef
+        inv = x * ia + (y * ib + ic)
+        inside = ((x * ua + (y * ub + uc)).abs() <= inv * hu) & ((x * va + (y * vb + vc)).abs() <= inv * hv)
+        return torch.where(inside & (inv > 0), inv, torch.zeros_like(inv))
 
-    def _hit(self, b: int, origin: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        """Ray parameter of the visible hit with box ``b`` (inf on a miss) for rays ``origin + t dirs`` ``(n, 3)``."""
-        R = self.rot[b]
-        o = (origin - self.centre[b]) @ R  # local frame; origin (3,) or (n, 3)
-        d = dirs @ R
-        tiny = torch.finfo(d.dtype).tiny ** 0.5
-        d = torch.where(d.abs() < tiny, torch.full_like(d, tiny), d)  # slab test needs no exact zeros
-        inv = 1.0 / d
-        h = self.half[b]
-        t1 = (-h - o) * inv
-        t2 = (h - o) * inv
-        t_near = torch.minimum(t1, t2).amax(-1)
-        t_far = torch.maximum(t1, t2).amin(-1)
-        if bool(self.inside[b]):
-            return t_far  # the room: the camera is inside, the exit point is the visible wall
-        hit = (t_near <= t_far) & (t_near > self.eps)
-        return torch.where(hit, t_near, torch.full_like(t_near, math.inf))
+    def cast_grid(self, faces: list) -> tuple[torch.Tensor, torch.Tensor]:
+        """Nearest face for every pixel centre: inverse depth ``(H, W)`` and face index ``(H, W)``."""
+        best = torch.zeros((self.h, self.w), device=self.device, dtype=self.dtype)
+        ids = torch.zeros((self.h, self.w), device=self.device, dtype=torch.long)
+        for i, coef, x0, x1, y0, y1 in faces:  # loop over faces
+            inv = self._inv_depth(coef, self.xs[None, x0:x1], self.ys[y0:y1, None])
+            cur = best[y0:y1, x0:x1]
+            closer = inv > cur
+            best[y0:y1, x0:x1] = torch.where(closer, inv, cur)
+            ids[y0:y1, x0:x1].masked_fill_(closer, i)
+        return best, ids
 
-    def cast_grid(self, origin: torch.Tensor, dirs: torch.Tensor, rects: list, full_columns: bool = False
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Nearest hit for a grid of rays ``dirs`` ``(H, W, 3)``: ``t`` ``(H, W)`` and box index ``(H, W)``.
+    def _supersample(self, faces: list, face: torch.Tensor, idx: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Four rotated-grid samples in each pixel ``idx`` ``(n,)`` (flat indices), tested only against the faces
+        seen at the centres of the pixel's 3x3 neighbourhood: sample x, y, inverse depth, face, each ``(4 n,)``."""
+        n_all = len(self.np_faces["centre"])
+        table = torch.zeros((n_all, 11), device=self.device, dtype=self.dtype)
+        table[torch.tensor([fc[0] for fc in faces], device=self.device)] = torch.tensor(
+            [fc[1] for fc in faces], device=self.device, dtype=self.dtype)
+        padded = torch.nn.functional.pad(face[None, None].to(self.dtype), (1, 1, 1, 1), mode="replicate")[0, 0]
+        padded = padded.long()
+        y, x = idx // self.w, idx % self.w
+        cand = torch.stack([padded[y + dy, x + dx] for dy in range(3) for dx in range(3)], -1)  # (n, 9)
+        coef = table[cand]  # (n, 9, 11)
+        off = torch.tensor([[-0.125, -0.375], [0.375, -0.125], [0.125, 0.375], [-0.375, 0.125]],
+                           device=self.device, dtype=self.dtype)
+        px = x.to(self.dtype)[:, None] + off[:, 0]  # (n, 4)
+        py = y.to(self.dtype)[:, None] + off[:, 1]
+        X, Y = px[:, :, None], py[:, :, None]  # (n, 4, 1) against coefficients (n, 1, 9)
+        c = coef[:, None]
+        inv = X * c[..., 0] + Y * c[..., 1] + c[..., 2]
+        inside = ((X * c[..., 3] + Y * c[..., 4] + c[..., 5]).abs() <= inv * c[..., 9]) & (
+            (X * c[..., 6] + Y * c[..., 7] + c[..., 8]).abs() <= inv * c[..., 10]) & (inv > 0)
+        inv = torch.where(inside, inv, torch.zeros_like(inv))
+        best, arg = inv.max(-1)  # (n, 4)
+        hit = cand.gather(1, arg)  # (n, 4)
+        # A sample that none of the neighbourhood's faces covers (a sliver thinner than a pixel) keeps the centre.
+        centre = face.view(-1)[idx][:, None].expand(-1, 4)
+        inv_centre = 1.0 / self.depth_flat[idx][:, None].expand(-1, 4)
+        miss = best <= 0
+        hit = torch.where(miss, centre, hit)
+        best = torch.where(miss, inv_centre, best)
+        return px.reshape(-1), py.reshape(-1), best.reshape(-1), hit.reshape(-1)
 
-        ``origin`` is ``(3,)`` or ``(H, W, 3)``. Each box is tested only inside its image rectangle.
-        """
-        H, W = dirs.shape[:2]
-        t_best = torch.full((H, W), math.inf, device=self.device, dtype=self.dtype)
-        id_best = torch.zeros((H, W), device=self.device, dtype=torch.long)
-        for b, r in enumerate(rects):  # loop over primitives
-            if r is None:
-                continue
-            x0, x1, y0, y1 = r
-            if full_columns:
-                x0, x1 = 0, W
-            if x0 >= x1:
-                continue
-            d = dirs[y0:y1, x0:x1].reshape(-1, 3)
-            o = origin if origin.dim() == 1 else origin[y0:y1, x0:x1].reshape(-1, 3)
-            t = self._hit(b, o, d).view(y1 - y0, x1 - x0)
-            cur = t_best[y0:y1, x0:x1]
-            closer = t < cur
-            t_best[y0:y1, x0:x1] = torch.where(closer, t, cur)
-            id_best[y0:y1, x0:x1] = torch.where(closer, torch.full_like(closer, b, dtype=torch.long),
-                                                id_best[y0:y1, x0:x1])
-        return t_best, id_best
-
-    def cast_points(self, origin: torch.Tensor, dirs: torch.Tensor, pix: torch.Tensor, rects: list
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Nearest hit for scattered rays ``dirs`` ``(n, 3)`` through pixels ``pix`` ``(n, 2)``."""
-        n = dirs.shape[0]
-        t_best = torch.full((n,), math.inf, device=self.device, dtype=self.dtype)
-        id_best = torch.zeros((n,), device=self.device, dtype=torch.long)
-        for b, r in enumerate(rects):  # loop over primitives
-            if r is None:
-                continue
-            x0, x1, y0, y1 = r
-            sel = (pix[:, 0] >= x0 - 1) & (pix[:, 0] <= x1) & (pix[:, 1] >= y0 - 1) & (pix[:, 1] <= y1)
-            idx = sel.nonzero().squeeze(1)
-            if idx.numel() == 0:
-                continue
-            t = self._hit(b, origin, dirs[idx])
-            cur = t_best[idx]
-            closer = t < cur
-            t_best[idx] = torch.where(closer, t, cur)
-            id_best[idx] = torch.where(closer, torch.full_like(idx, b), id_best[idx])
-        return t_best, id_best
+    def blocked(self, faces: list, x: torch.Tensor, inv_point: torch.Tensor) -> torch.Tensor:
+        """For rays through ``(x[r, c], r)`` ``(H, W)``: does any face lie nearer than ``1 / inv_point``?"""
+        limit = inv_point * (1.0 + 1e-4)
+        out = torch.zeros(x.shape, device=self.device, dtype=torch.bool)
+        for _, coef, x0, _x1, y0, y1 in faces:  # loop over faces; left x >= right x >= x0
+            inv = self._inv_depth(coef, x[y0:y1, x0:], self.ys[y0:y1, None])
+            out[y0:y1, x0:] |= inv > limit[y0:y1, x0:]
+        return out
 
     # -- shading
 
-    def face_id(self, points: torch.Tensor, box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Face index ``(n,)``, local hit point ``(n, 3)`` and face axis ``(n,)`` of world ``points`` on ``box``."""
-        local = ((points - self.centre[box])[:, None, :] @ self.rot[box])[:, 0]
-        rel = local.abs() / self.half[box]
-        axis = rel.argmax(-1)
-        pos = local.gather(1, axis[:, None])[:, 0] > 0
-        return box * 6 + axis * 2 + pos.long(), local, axis
-
-    def shade(self, origin: torch.Tensor, dirs: torch.Tensor, t: torch.Tensor, box: torch.Tensor,
-              supersample: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-        """Intensity ``(n,)`` and face id ``(n,)`` of hits ``origin + t dirs`` (``dirs`` in camera units, z = 1)."""
-        pts = origin + t[:, None] * dirs
-        face, local, axis = self.face_id(pts, box)
-        others = torch.as_tensor(self._OTHER_AXES, device=self.device)[axis]  # (n, 2)
-        uv = local.gather(1, others)
+    def shade(self, origin: torch.Tensor, dirs: torch.Tensor, depth: torch.Tensor, face: torch.Tensor,
+              supersample: float = 1.0) -> torch.Tensor:
+        """Intensity ``(n,)`` of hits ``origin + depth * dirs`` on ``face`` (``dirs`` ``(n, 3)``, camera z = 1)."""
+        pts = origin + depth[:, None] * dirs
+        rel = pts - self.face_centre[face]
+        uv = torch.stack([(rel * self.face_eu[face]).sum(-1), (rel * self.face_ev[face]).sum(-1)], -1)
         tex_uv = (self.face_A[face] @ uv[:, :, None])[:, :, 0] + self.face_off[face]
-        # Normal facing the viewer side of the surface (outward for solid boxes, inward for the room).
-        sign = torch.where(local.gather(1, axis[:, None])[:, 0] > 0, 1.0, -1.0).to(self.dtype)
-        sign = torch.where(self.inside[box], -sign, sign)
-        normal = self.rot[box].gather(2, axis[:, None, None].expand(-1, 3, 1))[:, :, 0] * sign[:, None]
-        # Footprint of a pixel on the surface (geometric mean of its two axes), in texels: band-limits the texture.
+        normal = self.face_normal[face]
+        # Footprint of a pixel on the surface (geometric mean of its two axes) in texels: band-limits the texture.
         cos = (normal * dirs).sum(-1).abs() / dirs.norm(dim=-1)
-        footprint = t / (self.f * supersample * cos.clamp_min(1e-3).sqrt()) / self.face_texel[face]
+        footprint = depth / (self.f * supersample * cos.clamp_min(1e-3).sqrt()) / self.face_texel[face]
         albedo = self.texture.sample(tex_uv[:, 0], tex_uv[:, 1], footprint)
         # Lambertian lighting from fixed point lights (view-independent, so left and right agree).
-        to_light = self.lights[None, :, :] - pts[:, None, :]
-        r2 = (to_light * to_light).sum(-1)
-        lam = ((to_light * normal[:, None, :]).sum(-1) / r2.sqrt()).clamp_min(0.0)
-        irradiance = (lam / (1.0 + r2 / self.light_range**2)).sum(-1)
-        shading = 0.5 + 0.5 * (1.0 - torch.exp(-1.5 * irradiance))
-        value = albedo * shading * self.face_gain[face] + self.face_bias[face]
-        return value.clamp(0.02, 0.98), face
+        irradiance = torch.zeros_like(depth)
+        for light in self.lights:  # loop over a handful of lights
+            to_light = light - pts
+            r2 = (to_light * to_light).sum(-1)
+            lam = ((to_light * normal).sum(-1) * r2.rsqrt()).clamp_min(0.0)
+            irradiance += lam / (1.0 + r2 / self.light_range**2)
+        shading = 0.5 + 0.5 * (1.0 - torch.exp(-1.5 * irradiance)) + self.sun_weight * self.face_sun[face]
+        value = albedo * shading.clamp_max(1.0) * self.face_gain[face] + self.face_bias[face]
+        return value.clamp(0.02, 0.98)
+
+    def _dirs(self, R: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        cam = torch.stack([(x - self.cx) / self.f, (y - self.cy) / self.f, torch.ones_like(x)], -1)
+        return cam @ R.T
 
     # -- one image
 
-    def render_view(self, cam_T: np.ndarray, pixel_dirs: torch.Tensor, antialias: bool
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Image ``(H, W)`` and ray parameter (= depth) ``(H, W)`` seen from camera pose ``cam_T`` (world_T_cam)."""
+    def render_view(self, cam_T: np.ndarray, antialias: bool) -> tuple[torch.Tensor, torch.Tensor, list]:
+        """Image ``(H, W)``, depth ``(H, W)`` and visible-face list seen from camera pose ``cam_T`` (world_T_cam)."""
         R = torch.as_tensor(cam_T[:3, :3], device=self.device, dtype=self.dtype)
         origin = torch.as_tensor(cam_T[:3, 3], device=self.device, dtype=self.dtype)
-        dirs = pixel_dirs @ R.T  # (H, W, 3) world directions with unit camera-z component
-        rects = self.rects(cam_T)
-        t, box = self.cast_grid(origin, dirs, rects)
-        value, face = self.shade(origin, dirs.view(-1, 3), t.view(-1), box.view(-1))
-        value, face = value.view(self.h, self.w), face.view(self.h, self.w)
+        faces = self.setup(cam_T)
+        inv, face = self.cast_grid(faces)
+        depth = 1.0 / inv  # every pixel sees a face of the room at least, so inv > 0
+        self.depth_flat = depth.view(-1)
+        yy, xx = torch.meshgrid(self.ys, self.xs, indexing="ij")
+        dirs = self._dirs(R, xx.reshape(-1), yy.reshape(-1))
+        value = self.shade(origin, dirs, depth.view(-1), face.view(-1)).view(self.h, self.w)
         if antialias:
-            # Re-render pixels on geometric edges (face changes) with 3x3 samples and average.
+            # Re-render pixels on geometric edges (where the face changes) with 4 rotated-grid samples.
             edge = torch.zeros_like(face, dtype=torch.bool)
             dx = face[:, 1:] != face[:, :-1]
             dy = face[1:, :] != face[:-1, :]
@@ -541,25 +581,11 @@ class _Renderer:
             edge[:-1, :] |= dy
             idx = edge.view(-1).nonzero().squeeze(1)
             if idx.numel() > 0:
-                ys = (idx // self.w).to(self.dtype)
-                xs = (idx % self.w).to(self.dtype)
-                o = torch.tensor([-1.0 / 3, 0.0, 1.0 / 3], device=self.device, dtype=self.dtype)
-                oy, ox = torch.meshgrid(o, o, indexing="ij")
-                px = (xs[:, None] + ox.reshape(1, -1)).reshape(-1)
-                py = (ys[:, None] + oy.reshape(1, -1)).reshape(-1)
-                cam_dirs = torch.stack([(px - self.cx) / self.f, (py - self.cy) / self.f, torch.ones_like(px)], -1)
-                sub_dirs = cam_dirs @ R.T
-                ts, bs = self.cast_points(origin, sub_dirs, torch.stack([px, py], -1), rects)
-                vs, _ = self.shade(origin, sub_dirs, ts, bs, supersample=3.0)
-                value.view(-1)[idx] = vs.view(-1, 9).mean(-1)
-        return value, t
-
-
-def _pixel_dirs(height: int, width: int, K: np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-    ys = torch.arange(height, device=device, dtype=dtype)
-    xs = torch.arange(width, device=device, dtype=dtype)
-    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
-    return torch.stack([(xx - K[0, 2]) / K[0, 0], (yy - K[1, 2]) / K[1, 1], torch.ones_like(xx)], -1)
+                px, py, inv_s, face_s = self._supersample(faces, face, idx)
+                dirs_s = self._dirs(R, px, py)
+                vs = self.shade(origin, dirs_s, 1.0 / inv_s, face_s, supersample=2.0)
+                value.view(-1)[idx] = vs.view(-1, 4).mean(-1)
+        return value, depth, faces
 
 
 def render_sequence(
@@ -626,11 +652,10 @@ def render_sequence(
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))
     poses = _trajectory(motion, num_frames, rig, rng)
     boxes = _build_scene(scene, poses, rig, np.random.default_rng(np.random.SeedSequence([int(seed), 2])))
-    lights = _lights(boxes, poses, rig)
+    lights = _lights(scene, boxes, poses, rig)
     renderer = _Renderer(boxes, lights, rig, K, H, W, np.random.default_rng(np.random.SeedSequence([int(seed), 3])),
                          texture_seed=int(seed), device=dev, dtype=dtype)
     noise_gen = torch.Generator(device=dev).manual_seed(int(seed) + 104729)
-    pixel_dirs = _pixel_dirs(H, W, K, dev, dtype)
     xs = torch.arange(W, device=dev, dtype=dtype)[None, :]
 
     lefts, rights, depths, occs = [], [], [], []
@@ -639,16 +664,12 @@ def render_sequence(
             pose_l = poses[i]
             pose_r = pose_l.copy()
             pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
-            left, depth = renderer.render_view(pose_l, pixel_dirs, antialias)
-            right, _ = renderer.render_view(pose_r, pixel_dirs, antialias)
-            # Occlusion: a shadow ray from the right camera centre to each left surface point, blocked before it?
-            R = torch.as_tensor(pose_l[:3, :3], device=dev, dtype=dtype)
-            o_l = torch.as_tensor(pose_l[:3, 3], device=dev, dtype=dtype)
-            o_r = torch.as_tensor(pose_r[:3, 3], device=dev, dtype=dtype)
-            pts = o_l + depth[..., None] * (pixel_dirs @ R.T)
-            t_sh, _ = renderer.cast_grid(o_r, pts - o_r, renderer.rects(pose_r), full_columns=True)
+            left, depth, _ = renderer.render_view(pose_l, antialias)
+            right, _, faces_r = renderer.render_view(pose_r, antialias)
+            # Occlusion: the left point (x, y, Z) lies on the right ray through (x - d, y) at the same depth Z
+            # (rectified rig); it is hidden if a face is nearer along that ray, or if it falls outside the image.
             disp = f * B / depth
-            occluded = (t_sh < 1.0 - 1e-4) | (xs - disp < 0.0)
+            occluded = renderer.blocked(faces_r, xs - disp, 1.0 / depth) | (xs - disp < 0.0)
             if noise_std > 0:
                 left = left + noise_std * torch.randn(left.shape, generator=noise_gen, device=dev, dtype=dtype)
                 right = right + noise_std * torch.randn(right.shape, generator=noise_gen, device=dev, dtype=dtype)

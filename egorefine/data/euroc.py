@@ -1,0 +1,235 @@
+"""Loader for EuRoC MAV stereo sequences in the ASL folder layout, rectified with OpenCV.
+
+Layout (``root``)::
+
+    mav0/cam0/data.csv, mav0/cam0/data/<timestamp>.png, mav0/cam0/sensor.yaml   (left)
+    mav0/cam1/...                                                                (right)
+    groundtruth/body_poses.csv  (#time(ns), px, py, pz, qw, qx, qy, qz, ...)   or
+    mav0/state_groundtruth_estimate0/data.csv                                    (the dataset's original)
+
+``sensor.yaml`` gives ``T_BS`` (sensor-to-body), pinhole ``intrinsics`` (fu, fv, cu, cv) and radial-tangential
+``distortion_coefficients``. The camera pose is ``T_WB @ T_BS``; after rectification it is expressed for the
+rectified left camera (``X_rect = R1 X_cam0``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..core import ValueRangeError
+from .folder import read_grey
+
+__all__ = ["EurocSequence", "load_euroc", "read_euroc_sensor"]
+
+# Ground-truth and image time stamps closer than this are the same instant (1 ms; frames are 50 ms apart).
+_TIME_TOLERANCE_NS = 1_000_000
+
+
+@dataclass
+class EurocSequence:
+    """A (rectified) EuRoC stereo clip.
+
+    Attributes:
+        left, right: ``(T, 1, H, W)`` grey images in [0, 1] (rectified unless loaded with ``rectify=False``).
+        K: ``(3, 3)`` intrinsics of the rectified left camera (of raw cam0 when not rectified).
+        baseline: metres.
+        poses: ``(T, 4, 4)`` ``world_T_camera`` of the rectified left camera (raw cam0 when not rectified).
+        timestamps: ``(T,)`` int64 nanoseconds.
+    """
+
+    left: torch.Tensor
+    right: torch.Tensor
+    K: torch.Tensor
+    baseline: float
+    poses: torch.Tensor
+    timestamps: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.left.shape[0]
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> EurocSequence:
+        """A copy on ``device``; floating tensors also cast to ``dtype`` when given."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, torch.Tensor):
+                v = v.to(device=device, dtype=dtype if (dtype is not None and v.is_floating_point()) else None)
+            out[f.name] = v
+        return replace(self, **out)
+
+    @property
+    def motions(self) -> torch.Tensor:
+        """``(T, 4, 4)`` ``camera_t_T_camera_{t-1}`` from the ground-truth poses; identity at ``t = 0``."""
+        m = torch.eye(4, dtype=self.poses.dtype, device=self.poses.device).repeat(len(self), 1, 1)
+        if len(self) > 1:
+            m[1:] = torch.linalg.inv(self.poses[1:]) @ self.poses[:-1]
+        return m
+
+
+def read_euroc_sensor(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read the bracketed numeric lists of an EuRoC ``sensor.yaml``: ``T_BS`` (4, 4), ``intrinsics`` (4,),
+    ``distortion_coefficients`` (4,) and ``resolution`` (2,) (a small reader; no YAML dependency)."""
+    text = Path(path).read_text()
+    lists = {}
+    # "key: [numbers]" possibly spanning lines; T_BS's list is under its own "data:" key.
+    block = re.search(r"T_BS:\s*\n(?:\s+\w+:.*\n)*?\s+data:\s*\[([^\]]*)\]", text)
+    if block is None:
+        raise ValueRangeError(f"path: no T_BS block in {os.fspath(path)!r}")
+    lists["T_BS"] = np.array([float(v) for v in block.group(1).replace("\n", " ").split(",")]).reshape(4, 4)
+    for key in ("intrinsics", "distortion_coefficients", "resolution"):
+        m = re.search(rf"^{key}:\s*\[([^\]]*)\]", text, flags=re.MULTILINE)
+        if m is None:
+            raise ValueRangeError(f"path: no {key} list in {os.fspath(path)!r}")
+        lists[key] = np.array([float(v) for v in m.group(1).split(",")])
+    return lists
+
+
+def _read_frames(cam_dir: Path) -> dict[int, Path]:
+    """Timestamp -> image file from a camera's ``data.csv``."""
+    out = {}
+    for line in (cam_dir / "data.csv").read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        ts, name = (s.strip() for s in line.split(",")[:2])
+        out[int(ts)] = cam_dir / "data" / name
+    return out
+
+
+def _read_groundtruth(root: Path) -> list[tuple]:
+    """Rows ``(t_ns, px, py, pz, qw, qx, qy, qz)`` with the time as an exact int."""
+    for rel in ("groundtruth/body_poses.csv", "mav0/state_groundtruth_estimate0/data.csv"):
+        p = root / rel
+        if p.is_file():
+            rows = []
+            for line in p.read_text().splitlines():
+                line = line.strip()
+                if line and not line.startswith("#"):
+                    parts = line.split(",")
+                    rows.append((int(parts[0]), *(float(v) for v in parts[1:8])))
+            return rows
+    raise FileNotFoundError(f"root: no groundtruth/body_poses.csv or state_groundtruth_estimate0 under {root}")
+
+
+def _quat_to_rot(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _body_poses(rows: list, stamps: list[int]) -> np.ndarray:
+    """World_T_body ``(T, 4, 4)`` at ``stamps``: linear interpolation of position, normalised lerp of quaternions."""
+    times = np.array([r[0] for r in rows], dtype=np.int64)
+    vals = np.array([r[1:] for r in rows], dtype=np.float64)
+    out = np.tile(np.eye(4), (len(stamps), 1, 1))
+    for k, ts in enumerate(stamps):  # loop over frames
+        j = int(np.searchsorted(times, ts))
+        near = int(np.argmin(np.abs(times - ts)))
+        if abs(int(times[near]) - ts) <= _TIME_TOLERANCE_NS:  # the same instant (re-processed stamps are rounded)
+            p, q = vals[near, :3], vals[near, 3:]
+        else:
+            if j == 0 or j == len(times):
+                raise ValueRangeError(f"root: no ground truth around frame time {ts} ns")
+            a = (ts - times[j - 1]) / float(times[j] - times[j - 1])
+            p = (1 - a) * vals[j - 1, :3] + a * vals[j, :3]
+            q0, q1 = vals[j - 1, 3:], vals[j, 3:]
+            q1 = q1 if np.dot(q0, q1) >= 0 else -q1
+            q = (1 - a) * q0 + a * q1
+        out[k, :3, :3] = _quat_to_rot(q)
+        out[k, :3, 3] = p
+    return out
+
+
+def load_euroc(
+    root: str | os.PathLike,
+    max_frames: int | None = None,
+    rectify: bool = True,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> EurocSequence:
+    """Load a EuRoC MAV stereo clip (ASL layout) with its ground-truth poses, rectified for stereo.
+
+    Args:
+        root: folder holding ``mav0`` (and ``groundtruth/body_poses.csv``).
+        max_frames: keep at most this many of the first synchronised frames.
+        rectify: undistort and rectify both cameras with OpenCV (``stereoRectify``, zero-disparity principal
+            points, ``alpha = 0``: no invalid border); otherwise return the raw images with cam0's pinhole ``K``.
+        device, dtype: where and as what the tensors are returned.
+
+    Returns:
+        :class:`EurocSequence`.
+    """
+    root = Path(root)
+    cams = [root / "mav0" / "cam0", root / "mav0" / "cam1"]
+    for c in cams:
+        if not (c / "data.csv").is_file() or not (c / "sensor.yaml").is_file():
+            raise FileNotFoundError(f"root: {c} lacks data.csv or sensor.yaml (expected the EuRoC ASL layout)")
+    if max_frames is not None and max_frames < 1:
+        raise ValueRangeError(f"max_frames: expected >= 1 or None, got {max_frames}")
+    sensors = [read_euroc_sensor(c / "sensor.yaml") for c in cams]
+    frames = [_read_frames(c) for c in cams]
+    stamps = sorted(set(frames[0]) & set(frames[1]))
+    gt_rows = _read_groundtruth(root)
+    gt_t0, gt_t1 = gt_rows[0][0], gt_rows[-1][0]
+    stamps = [s for s in stamps if gt_t0 - _TIME_TOLERANCE_NS <= s <= gt_t1 + _TIME_TOLERANCE_NS]
+    if max_frames is not None:
+        stamps = stamps[:max_frames]
+    if not stamps:
+        raise ValueRangeError(f"root: no synchronised stereo frames with ground truth under {root}")
+
+    Ks, Ds = [], []
+    for s in sensors:
+        fu, fv, cu, cv = s["intrinsics"]
+        Ks.append(np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]]))
+        Ds.append(np.asarray(s["distortion_coefficients"], dtype=np.float64))
+    w, h = (int(v) for v in sensors[0]["resolution"])
+    # cam1_T_cam0 = inv(T_BS1) T_BS0: OpenCV's (R, T) map points of the first camera into the second.
+    c1_T_c0 = np.linalg.inv(sensors[1]["T_BS"]) @ sensors[0]["T_BS"]
+    body = _body_poses(gt_rows, stamps)
+    world_T_cam0 = body @ sensors[0]["T_BS"]
+
+    lefts, rights = [], []
+    if rectify:
+        rot, trans = np.ascontiguousarray(c1_T_c0[:3, :3]), np.ascontiguousarray(c1_T_c0[:3, 3:4])
+        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
+            Ks[0], Ds[0], Ks[1], Ds[1], (w, h), rot, trans,
+            flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0,
+        )
+        maps = [cv2.initUndistortRectifyMap(Ks[i], Ds[i], Rr, Pr, (w, h), cv2.CV_32FC1)
+                for i, (Rr, Pr) in enumerate(((R1, P1), (R2, P2)))]
+        K = P1[:3, :3]
+        baseline = float(-P2[0, 3] / P2[0, 0])
+        cam0_T_rect = np.eye(4)
+        cam0_T_rect[:3, :3] = R1.T  # X_rect = R1 X_cam0
+        poses = world_T_cam0 @ cam0_T_rect
+    else:
+        K = Ks[0]
+        baseline = float(np.linalg.norm(c1_T_c0[:3, 3]))
+        poses = world_T_cam0
+    for ts in stamps:  # loop over frames (file reads)
+        pair = []
+        for i in range(2):
+            img = read_grey(frames[i][ts]).numpy()[0, 0]
+            if rectify:
+                img = cv2.remap(img, maps[i][0], maps[i][1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            pair.append(torch.from_numpy(np.clip(img, 0.0, 1.0)))
+        lefts.append(pair[0])
+        rights.append(pair[1])
+    return EurocSequence(
+        left=torch.stack(lefts)[:, None].to(device=device, dtype=dtype),
+        right=torch.stack(rights)[:, None].to(device=device, dtype=dtype),
+        K=torch.as_tensor(K, dtype=dtype, device=device),
+        baseline=baseline,
+        poses=torch.as_tensor(poses, dtype=dtype, device=device),
+        timestamps=torch.tensor(stamps, dtype=torch.int64, device=device),
+    )
