@@ -224,8 +224,9 @@ def detect(
     check_choice(subpixel, _SUBPIXEL, "subpixel")
     _check_settings(max_features, tuple(grid), nms_radius, border)
     with torch.no_grad():
-        return _detect(image, max_features, tuple(grid), response, nms_radius, quality, min_response, border,
-                       subpixel, k)
+        return _detect(
+            image, max_features, tuple(grid), response, nms_radius, quality, min_response, border, subpixel, k
+        )
 
 
 def _detect(

@@ -421,7 +421,8 @@ def _check_finite_images(prev: torch.Tensor, next: torch.Tensor) -> None:  # noq
     when every term is (images in [0, 1] cannot overflow it), and a full-size ``isfinite``
     costs as much as a pyramid level here. One synchronisation for both images.
     """
-    finite = torch.isfinite(torch.stack([prev.sum(), next.sum()]))
+    # Accumulate in float64: a float16 image's sum could overflow its own type.
+    finite = torch.isfinite(torch.stack([prev.sum(dtype=torch.float64), next.sum(dtype=torch.float64)]))
     if not bool(finite.all()):
         name = "prev" if not bool(finite[0]) else "next"
         raise ValueRangeError(f"{name}: contains NaN or Inf")
@@ -548,7 +549,15 @@ def track(
     pyr_next = build_pyramid(next, levels)
     start = keypoints if predicted is None else predicted.to(prev.dtype)
     out_kp, best, edge = _track_level0(
-        pyr_prev, pyr_next, keypoints, start, patch_size, search_radius, refine_radius, cost, lk_iters,
+        pyr_prev,
+        pyr_next,
+        keypoints,
+        start,
+        patch_size,
+        search_radius,
+        refine_radius,
+        cost,
+        lk_iters,
         temperature if soft else None,
     )
     score = -best.detach()
@@ -570,8 +579,16 @@ def track(
             # refine_radius px): a wrong match lands anywhere in that window, on its edge or far
             # from the start. One LK iteration suffices against a threshold of ~1 px.
             back, _, back_edge = _track_level0(
-                pyr_next[:2], pyr_prev[:2], kp_d, kp_in, patch_size, refine_radius, refine_radius, cost,
-                min(lk_iters, 1), None,
+                pyr_next[:2],
+                pyr_prev[:2],
+                kp_d,
+                kp_in,
+                patch_size,
+                refine_radius,
+                refine_radius,
+                cost,
+                min(lk_iters, 1),
+                None,
             )
             fb_error = (back - kp_in).norm(dim=-1)
             ok = ok & ~back_edge & (fb_error <= fb_threshold)

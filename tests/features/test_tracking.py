@@ -227,22 +227,47 @@ def test_soft_gradients_reach_images_and_keypoints(scene):
     torch.testing.assert_close(pts.grad, torch.ones_like(pts.grad), atol=0.05, rtol=0)
 
 
-@pytest.mark.parametrize("lk_iters", [0, 1])
-def test_soft_gradcheck(lk_iters):
+def _soft_case(size: int):
     g = torch.Generator().manual_seed(1)
-    prev = smooth_texture(3, 14, 14).double()
-    nxt = torch.roll(prev, shifts=(1, 0), dims=(2, 3)) + 0.01 * torch.rand(1, 1, 14, 14, generator=g).double()
-    prev.requires_grad_(True)
-    nxt.requires_grad_(True)
-    pts = torch.tensor([[[6.3, 6.6], [7.2, 5.8]]], dtype=torch.float64, requires_grad=True)
+    prev = smooth_texture(3, size, size).double()
+    nxt = torch.roll(prev, shifts=(1, 0), dims=(2, 3)) + 0.01 * torch.rand(1, 1, size, size, generator=g).double()
+    pts = torch.tensor([[[4.3, 4.6], [5.2, 3.8]]], dtype=torch.float64) + (size - 10) / 2
     w = torch.ones(1, 2, dtype=torch.float64)
+    settings = dict(
+        soft=True,
+        patch_size=3,
+        search_radius=1,
+        refine_radius=1,
+        levels=1,
+        fb_check=False,
+        temperature=0.1,
+        min_score=None,
+    )
+    return prev, nxt, pts, w, settings
+
+
+@pytest.mark.parametrize("lk_iters", [0, 1])
+def test_soft_gradcheck_keypoints(lk_iters):
+    prev, nxt, pts, w, settings = _soft_case(10)
+    pts.requires_grad_(True)
+
+    def f(p):
+        return track(prev, nxt, p, w, lk_iters=lk_iters, **settings).keypoints
+
+    assert torch.autograd.gradcheck(f, (pts,), eps=1e-6, atol=1e-5)
+
+
+@pytest.mark.parametrize("lk_iters", [0, 1])
+def test_soft_gradcheck_images_and_keypoints(lk_iters):
+    prev, nxt, pts, w, settings = _soft_case(12)
+    for t in (prev, nxt, pts):
+        t.requires_grad_(True)
 
     def f(a, b, p):
-        out = track(a, b, p, w, soft=True, patch_size=3, search_radius=1, refine_radius=1, levels=1,
-                    fb_check=False, temperature=0.1, lk_iters=lk_iters, min_score=None)
-        return out.keypoints
+        return track(a, b, p, w, lk_iters=lk_iters, **settings).keypoints
 
-    assert torch.autograd.gradcheck(f, (prev, nxt, pts), eps=1e-6, atol=1e-5)
+    # fast_mode: a random projection of the full Jacobian (every input element takes part).
+    assert torch.autograd.gradcheck(f, (prev, nxt, pts), eps=1e-6, atol=1e-5, fast_mode=True)
 
 
 def test_hard_variant_gradients_are_finite_even_on_black_frames():
@@ -324,3 +349,14 @@ def test_rendered_sequence_against_true_flow():
     assert inlier.sum() >= 30
     err = (out.keypoints[0] - truth[0]).norm(dim=-1)[inlier]
     assert err.median() < 0.2, err.median()
+
+
+def test_soft_gradcheck_images_full():
+    prev, nxt, pts, w, settings = _soft_case(10)
+    for t in (prev, nxt, pts):
+        t.requires_grad_(True)
+
+    def f(a, b, p):
+        return track(a, b, p, w, lk_iters=1, **settings).keypoints
+
+    assert torch.autograd.gradcheck(f, (prev, nxt, pts), eps=1e-6, atol=1e-5)
