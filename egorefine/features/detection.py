@@ -392,6 +392,8 @@ def replenish(
     if not min_distance >= 0:
         raise ValueRangeError(f"min_distance: expected a number >= 0, got {min_distance!r}")
     b = dims["B"]
+    if m == 0 or b == 0:  # no slots to fill
+        return keypoints.clone(), weights.clone()
     if m > n:
         keypoints = F.pad(keypoints, (0, 0, 0, m - n))
         weights = F.pad(weights, (0, m - n))

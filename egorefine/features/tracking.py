@@ -545,6 +545,8 @@ def track(
 
     h, w = dims["H"], dims["W"]
     keypoints = keypoints.to(prev.dtype)
+    if keypoints.numel() == 0:  # no features (or an empty batch): nothing to match
+        return TrackOutput(keypoints.clone(), weights.clone(), torch.zeros_like(weights), torch.zeros_like(weights))
     pyr_prev = build_pyramid(prev, levels)
     pyr_next = build_pyramid(next, levels)
     start = keypoints if predicted is None else predicted.to(prev.dtype)

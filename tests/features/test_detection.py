@@ -194,3 +194,9 @@ def test_replenish_bad_input():
         replenish(img, bad, torch.zeros(1, 5))
     with pytest.raises(ValueRangeError, match="max_features"):
         replenish(img, torch.zeros(1, 5, 2), torch.zeros(1, 5), max_features=3)
+
+
+def test_replenish_without_slots():
+    img = torch.rand(1, 1, 32, 32)
+    kp, w = replenish(img, torch.zeros(1, 0, 2), torch.zeros(1, 0))
+    assert kp.shape == (1, 0, 2) and w.shape == (1, 0)

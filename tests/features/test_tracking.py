@@ -360,3 +360,9 @@ def test_soft_gradcheck_images_full():
         return track(a, b, p, w, lk_iters=1, **settings).keypoints
 
     assert torch.autograd.gradcheck(f, (prev, nxt, pts), eps=1e-6, atol=1e-5)
+
+
+def test_no_features_is_not_an_error():
+    img = torch.rand(2, 1, 40, 50)
+    out = track(img, img, torch.zeros(2, 0, 2), torch.zeros(2, 0))
+    assert all(t.shape[:2] == (2, 0) for t in out)
