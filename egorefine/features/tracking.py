@@ -421,8 +421,9 @@ def _check_finite_images(prev: torch.Tensor, next: torch.Tensor) -> None:  # noq
     when every term is (images in [0, 1] cannot overflow it), and a full-size ``isfinite``
     costs as much as a pyramid level here. One synchronisation for both images.
     """
-    # Accumulate in float64: a float16 image's sum could overflow its own type.
-    finite = torch.isfinite(torch.stack([prev.sum(dtype=torch.float64), next.sum(dtype=torch.float64)]))
+    # Half-precision images are summed in float32: their sum could overflow their own type.
+    wide = torch.float32 if prev.element_size() < 4 else prev.dtype
+    finite = torch.isfinite(torch.stack([prev.sum(dtype=wide), next.sum(dtype=wide)]))
     if not bool(finite.all()):
         name = "prev" if not bool(finite[0]) else "next"
         raise ValueRangeError(f"{name}: contains NaN or Inf")
@@ -472,7 +473,7 @@ def track(
     min_texture: float = 0.01,
     soft: bool = False,
     temperature: float = 0.02,
-    lk_iters: int = 2,
+    lk_iters: int = 1,
 ) -> TrackOutput:
     """Track keypoints from ``prev`` to ``next`` by coarse-to-fine block matching.
 
@@ -623,7 +624,7 @@ class Tracker(torch.nn.Module):
         min_texture: float = 0.01,
         soft: bool = False,
         temperature: float = 0.02,
-        lk_iters: int = 2,
+        lk_iters: int = 1,
     ) -> None:
         super().__init__()
         _check_track_settings(
