@@ -43,7 +43,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from ..core import (
@@ -150,25 +149,33 @@ def _disparity_at(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Disparity at the points ``(B, N)`` and where it is usable ``(B, N)`` bool.
 
-    A map is sampled bilinearly (``align_corners``: integer coordinates are pixel centres);
-    a sample counts as usable only if all pixels it interpolates are finite, positive and
-    valid, and the point lies inside the image.
+    A map is sampled bilinearly (integer coordinates are pixel centres); a sample counts as
+    usable only if the point lies inside the image and all 4 pixels it interpolates are finite,
+    positive and valid. Only those 4 pixels per point are read (gathered), never the whole
+    map, so the cost does not grow with the image.
     """
     if disparity.dim() == 2:
         usable = torch.isfinite(disparity) & (disparity > 0)
         return torch.where(usable, disparity, torch.zeros_like(disparity)), usable
-    _, _, H, W = disparity.shape
-    good = torch.isfinite(disparity) & (disparity > 0)
-    if valid is not None:
-        good = good & valid.bool()
-    clean = torch.where(good, disparity, torch.zeros_like(disparity))
+    B, _, H, W = disparity.shape
     x, y = points[..., 0], points[..., 1]
-    grid = torch.stack([x * (2.0 / max(W - 1, 1)) - 1, y * (2.0 / max(H - 1, 1)) - 1], dim=-1)[:, :, None]
-    both = torch.cat([clean, good.to(clean.dtype)], dim=1)  # one grid_sample for value and mask
-    sampled = F.grid_sample(both, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[..., 0]
     inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
-    usable = inside & (sampled[:, 1] > 1 - 1e-3)
-    return torch.where(usable, sampled[:, 0], torch.zeros_like(sampled[:, 0])), usable
+    x0f = x.detach().floor().clamp(0, W - 1)
+    y0f = y.detach().floor().clamp(0, H - 1)
+    x0, y0 = x0f.long(), y0f.long()
+    x1, y1 = (x0 + 1).clamp(max=W - 1), (y0 + 1).clamp(max=H - 1)
+    idx = torch.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], dim=-1).view(B, -1)  # (B, 4N)
+    v = disparity.reshape(B, H * W).gather(1, idx).view(B, -1, 4)
+    good = torch.isfinite(v) & (v > 0)
+    if valid is not None:
+        good = good & valid.reshape(B, H * W).gather(1, idx).view(B, -1, 4).bool()
+    v = torch.where(good, v, torch.zeros_like(v))  # no NaN into the products below
+    fx, fy = (x - x0f).clamp(0, 1), (y - y0f).clamp(0, 1)
+    top = v[..., 0] + fx * (v[..., 1] - v[..., 0])
+    bottom = v[..., 2] + fx * (v[..., 3] - v[..., 2])
+    sampled = top + fy * (bottom - top)
+    usable = inside & good.all(-1)
+    return torch.where(usable, sampled, torch.zeros_like(sampled)), usable
 
 
 # --------------------------------------------------------------------------- linear algebra
