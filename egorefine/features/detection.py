@@ -110,6 +110,28 @@ def _subpixel_offsets(resp: torch.Tensor, ix: torch.Tensor, iy: torch.Tensor) ->
     return torch.stack([ox, oy], dim=-1)
 
 
+def _max_filter(x: torch.Tensor, radius: int) -> torch.Tensor:
+    """Maximum over the ``(2 radius + 1)^2`` square around every pixel of ``x`` (B, 1, H, W).
+
+    Separable (rows, then columns) with shifted slices: the same result as
+    ``F.max_pool2d(x, 2 radius + 1, stride=1, padding=radius)``, about ten times faster on CPU
+    for the 7x7 window used here.
+    """
+    if radius == 0:
+        return x
+    h, w = x.shape[-2:]
+    k = 2 * radius + 1
+    y = F.pad(x, (radius, radius, 0, 0), value=float("-inf"))
+    rows = y[..., 0:w]
+    for i in range(1, k):
+        rows = torch.maximum(rows, y[..., i : i + w])
+    y = F.pad(rows, (0, 0, radius, radius), value=float("-inf"))
+    out = y[..., 0:h, :]
+    for i in range(1, k):
+        out = torch.maximum(out, y[..., i : i + h, :])
+    return out
+
+
 def _gradient_offsets(
     gray: torch.Tensor, ix: torch.Tensor, iy: torch.Tensor, radius: int = 3, iters: int = 2
 ) -> torch.Tensor:
@@ -244,7 +266,7 @@ def _detect(
     b, _, h, w = image.shape
     resp = corner_response(image, response, k)  # (B, 1, H, W)
     # Non-maximum suppression by comparison with a max-pooled copy.
-    pooled = F.max_pool2d(resp, 2 * nms_radius + 1, stride=1, padding=nms_radius)
+    pooled = _max_filter(resp, nms_radius)
     peak_max = resp.flatten(1).amax(dim=1).view(b, 1, 1, 1)
     threshold = torch.clamp(peak_max * quality, min=min_response)
     keep = (resp >= pooled) & (resp >= threshold)

@@ -200,3 +200,12 @@ def test_replenish_without_slots():
     img = torch.rand(1, 1, 32, 32)
     kp, w = replenish(img, torch.zeros(1, 0, 2), torch.zeros(1, 0))
     assert kp.shape == (1, 0, 2) and w.shape == (1, 0)
+
+
+@pytest.mark.parametrize("radius", [0, 1, 3])
+def test_max_filter_matches_max_pool(radius):
+    from egorefine.features.detection import _max_filter
+
+    x = torch.rand(2, 1, 17, 23, generator=torch.Generator().manual_seed(0))
+    expected = torch.nn.functional.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius)
+    assert torch.equal(_max_filter(x, radius), expected)
