@@ -222,8 +222,8 @@ def cost_volume(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min
 
     Inputs are assumed checked (use :func:`egorefine.stereo.block_matching` for the checked
     entry point). Costs are window means: SAD of the x-Sobel prefiltered images, ``1 - ZNCC``
-    in [0, 2], or the Hamming distance of census strings. Entries with ``x - d < 0`` hold
-    :data:`INVALID_COST` added.
+    in [0, 2], or the Hamming distance of census strings. Entries with ``x - d < 0`` have
+    ``INVALID_COST / block_size**2`` added (they are never chosen).
 
     Args:
         left, right: ``(B, 1|3, H, W)`` float images.

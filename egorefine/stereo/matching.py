@@ -98,13 +98,19 @@ def _encode(vol: torch.Tensor) -> torch.Tensor:
     over the disparity axis returns the winner's (slightly rounded) cost *and* its index
     (ties go to the lower index); ``argmin`` along a non-inner axis is several times slower.
     Costs lose ``log2(D)`` of their 24 mantissa bits (relative error < 2**-16 for D <= 128),
-    which only matters for near-ties. The result is a new int32 tensor.
+    which only matters for near-ties. Returns an int32 tensor; a float32 ``vol`` that needs
+    no gradient is encoded in place (its values then carry that tiny rounding too).
     """
     num = vol.shape[1]
     bits = _index_bits(num)
     index = torch.arange(num, device=vol.device, dtype=torch.int32).view(1, num, 1, 1)
-    as_int = vol.detach().to(torch.float32).clamp_min(0).view(torch.int32)
-    return torch.bitwise_and(as_int, -(1 << bits)).bitwise_or_(index)
+    if vol.requires_grad or vol.dtype != torch.float32:
+        work = vol.detach().to(torch.float32, copy=True)
+    else:
+        work = vol
+    # clamp: a rounding-negative cost (1 - ZNCC) would read as a huge negative integer
+    code = work.clamp_min_(0).view(torch.int32)
+    return code.bitwise_and_(-(1 << bits)).bitwise_or_(index)
 
 
 def _decode_index(code: torch.Tensor, num: int) -> torch.Tensor:

@@ -41,16 +41,28 @@ def _shift_last(x: torch.Tensor, dx: int) -> torch.Tensor:
     return torch.cat([x[..., 1:], zeros], dim=-1)
 
 
-def _scan(vol: torch.Tensor, p1: float, p2: float, reverse: bool, dx: int) -> torch.Tensor:
-    """Aggregate ``vol`` ``(N, B, D, M)`` along its first axis; each step's predecessor is shifted by ``dx`` in M."""
+def _scan(vol: torch.Tensor, p1: float, p2: float, reverse: bool, dx: int, acc: torch.Tensor | None = None
+          ) -> torch.Tensor:
+    """Aggregate ``vol`` ``(N, B, D, M)`` along its first axis; each step's predecessor is shifted by ``dx`` in M.
+
+    Without autograd the path costs are added into ``acc`` in place (no extra volume); with it
+    they are stacked and added out of place.
+    """
     n = vol.shape[0]
     order = range(n - 1, -1, -1) if reverse else range(n)
     prev = torch.zeros_like(vol[0])
+    in_place = acc is not None and not (vol.requires_grad or acc.requires_grad)
     out: list[torch.Tensor] = [prev] * n
     for i in order:
         prev = _step(_shift_last(prev, dx), vol[i], p1, p2)
-        out[i] = prev
-    return torch.stack(out, dim=0)
+        if in_place:
+            acc[i].add_(prev)
+        else:
+            out[i] = prev
+    if in_place:
+        return acc
+    stacked = torch.stack(out, dim=0)
+    return stacked if acc is None else acc + stacked
 
 
 def sgm_aggregate(volume: torch.Tensor, p1: float, p2: float, paths: int = 4) -> torch.Tensor:
@@ -65,23 +77,25 @@ def sgm_aggregate(volume: torch.Tensor, p1: float, p2: float, paths: int = 4) ->
 
     Returns:
         ``(B, D, H, W)`` aggregated costs, divided by the number of paths (so their scale
-        stays that of ``volume`` plus penalties).
+        stays that of ``volume`` plus penalties). Without autograd about three volumes of
+        extra memory are used.
 
     >>> sgm_aggregate(torch.rand(1, 5, 6, 7), 0.1, 0.5).shape
     torch.Size([1, 5, 6, 7])
     """
     # rows of (B, D, W): vertical paths (and the diagonals, which shift by one column per row)
     by_row = volume.permute(2, 0, 1, 3).contiguous()
-    total = None
+    total = torch.zeros_like(by_row)
     shifts = (0, 1, -1) if paths == 8 else (0,)
     for reverse in (False, True):
         for dx in shifts:
-            agg = _scan(by_row, p1, p2, reverse, dx)
-            total = agg if total is None else total + agg
-    by_row = None
-    total = total.permute(1, 2, 0, 3)
+            total = _scan(by_row, p1, p2, reverse, dx, total)
+    del by_row
     # columns of (B, D, H): horizontal paths
     by_col = volume.permute(3, 0, 1, 2).contiguous()
-    horizontal = _scan(by_col, p1, p2, False, 0) + _scan(by_col, p1, p2, True, 0)
-    total = total + horizontal.permute(1, 2, 3, 0)
-    return total / paths
+    horizontal = _scan(by_col, p1, p2, True, 0, _scan(by_col, p1, p2, False, 0))
+    del by_col
+    total = total.permute(1, 2, 0, 3)
+    if total.requires_grad or horizontal.requires_grad:
+        return (total + horizontal.permute(1, 2, 3, 0)) / paths
+    return total.add_(horizontal.permute(1, 2, 3, 0)).div_(paths)

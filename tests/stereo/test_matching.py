@@ -12,14 +12,6 @@ from egorefine.stereo import INVALID_VARIANCE, BlockMatching, StereoOutput, bloc
 from ._synthetic import planar_pair, visible
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _threads():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(min(previous, 2))
-    yield
-    torch.set_num_threads(previous)
-
-
 @pytest.fixture(scope="module")
 def pair():
     return planar_pair(batch=2, height=64, width=96, seed=0)
