@@ -67,7 +67,14 @@ def _periodic_noise(size: int, exponent: float, gen: torch.Generator) -> torch.T
 def make_texture(
     seed: int = 0, size: int = 1024, num_levels: int = 10, device: str = "cpu", dtype: torch.dtype = torch.float32
 ) -> MipTexture:
-    """Build (and cache) the procedural albedo tile for ``seed``. Values lie in about [0.08, 0.92]."""
+    """The procedural albedo tile for ``seed`` on ``device`` as ``dtype`` (cached). Values lie in about [0.08, 0.92]."""
+    levels = _texture_levels(seed, size, num_levels)
+    return MipTexture(levels.to(device=device, dtype=dtype).contiguous(), size)
+
+
+@functools.lru_cache(maxsize=2)
+def _texture_levels(seed: int, size: int, num_levels: int) -> torch.Tensor:
+    """Build the mip stack ``(1, 1, L, S + 2, S + 2)`` (float64, CPU) of the tile for ``seed``."""
     gen = torch.Generator().manual_seed(int(seed) + 7919)
     # Two noise layers: a smooth "stain" layer and a rough fine-grain layer (rich texture at every scale).
     tex = 0.55 * _periodic_noise(size, 1.0, gen) + 0.45 * _periodic_noise(size, 0.55, gen)
@@ -113,5 +120,4 @@ def make_texture(
         sigma = 0.0 if k == 0 else 0.45 * 2.0**k  # Gaussian prefilter for a footprint of 2**k texels
         lvl = albedo if k == 0 else torch.fft.ifft2(spec * torch.exp(-2.0 * math.pi**2 * sigma**2 * r2)).real
         levels.append(F.pad(lvl[None, None], (1, 1, 1, 1), mode="circular")[0, 0])
-    stack = torch.stack(levels)[None, None]
-    return MipTexture(stack.to(device=device, dtype=dtype).contiguous(), size)
+    return torch.stack(levels)[None, None]

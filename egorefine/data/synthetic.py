@@ -471,6 +471,8 @@ class _Renderer:
         """Inverse depth of the face along the rays through pixels ``(x, y)`` (broadcast); 0 where they miss it."""
         ia, ib, ic, ua, ub, uc, va, vb, vc, hu, hv = coef
         inv = x * ia + (y * ib + ic)
+        # Faces are grown by a hair (relative 1e-5) so that rays through shared edges never slip between them.
+        hu, hv = hu * (1.0 + 1e-5), hv * (1.0 + 1e-5)
         inside = ((x * ua + (y * ub + uc)).abs() <= inv * hu) & ((x * va + (y * vb + vc)).abs() <= inv * hv)
         return torch.where(inside & (inv > 0), inv, torch.zeros_like(inv))
 
@@ -588,6 +590,38 @@ class _Renderer:
         return value, depth, faces
 
 
+def _render_frames(renderer: _Renderer, poses: np.ndarray, f: float, B: float, noise_std: float,
+                   noise_gen: torch.Generator, antialias: bool, show_progress: bool) -> tuple[list, list, list, list]:
+    """Render every frame: left and right images, left depth and the occlusion mask, each ``(H, W)``."""
+    dev, dtype = renderer.device, renderer.dtype
+    xs = torch.arange(renderer.w, device=dev, dtype=dtype)[None, :]
+    num_frames = len(poses)
+    lefts, rights, depths, occs = [], [], [], []
+    with torch.no_grad():
+        for i in range(num_frames):  # loop over frames
+            pose_l = poses[i]
+            pose_r = pose_l.copy()
+            pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
+            left, depth, _ = renderer.render_view(pose_l, antialias)
+            right, _, faces_r = renderer.render_view(pose_r, antialias)
+            # Occlusion: the left point (x, y, Z) lies on the right ray through (x - d, y) at the same depth Z
+            # (rectified rig); it is hidden if a face is nearer along that ray, or if it falls outside the image.
+            disp = f * B / depth
+            occluded = renderer.blocked(faces_r, xs - disp, 1.0 / depth) | (xs - disp < 0.0)
+            if noise_std > 0:
+                left = left + noise_std * torch.randn(left.shape, generator=noise_gen, device=dev, dtype=dtype)
+                right = right + noise_std * torch.randn(right.shape, generator=noise_gen, device=dev, dtype=dtype)
+            lefts.append(left.clamp(0.0, 1.0))
+            rights.append(right.clamp(0.0, 1.0))
+            depths.append(depth)
+            occs.append(occluded)
+            if show_progress:
+                print(f"\rrender_sequence: frame {i + 1}/{num_frames}", end="", file=sys.stderr, flush=True)
+    if show_progress:
+        print(file=sys.stderr)
+    return lefts, rights, depths, occs
+
+
 def render_sequence(
     num_frames: int = 60,
     preset: str = "paper",
@@ -654,34 +688,18 @@ def render_sequence(
     boxes = _build_scene(scene, poses, rig, np.random.default_rng(np.random.SeedSequence([int(seed), 2])))
     lights = _lights(scene, boxes, poses, rig)
     renderer = _Renderer(boxes, lights, rig, K, H, W, np.random.default_rng(np.random.SeedSequence([int(seed), 3])),
-                         texture_seed=int(seed), device=dev, dtype=dtype)
+                         texture_seed=0, device=dev, dtype=dtype)
     noise_gen = torch.Generator(device=dev).manual_seed(int(seed) + 104729)
-    xs = torch.arange(W, device=dev, dtype=dtype)[None, :]
-
-    lefts, rights, depths, occs = [], [], [], []
-    with torch.no_grad():
-        for i in range(num_frames):  # loop over frames
-            pose_l = poses[i]
-            pose_r = pose_l.copy()
-            pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
-            left, depth, _ = renderer.render_view(pose_l, antialias)
-            right, _, faces_r = renderer.render_view(pose_r, antialias)
-            # Occlusion: the left point (x, y, Z) lies on the right ray through (x - d, y) at the same depth Z
-            # (rectified rig); it is hidden if a face is nearer along that ray, or if it falls outside the image.
-            disp = f * B / depth
-            occluded = renderer.blocked(faces_r, xs - disp, 1.0 / depth) | (xs - disp < 0.0)
-            if noise_std > 0:
-                left = left + noise_std * torch.randn(left.shape, generator=noise_gen, device=dev, dtype=dtype)
-                right = right + noise_std * torch.randn(right.shape, generator=noise_gen, device=dev, dtype=dtype)
-            lefts.append(left.clamp(0.0, 1.0))
-            rights.append(right.clamp(0.0, 1.0))
-            depths.append(depth)
-            occs.append(occluded)
-            if show_progress:
-                print(f"\rrender_sequence: frame {i + 1}/{num_frames}", end="", file=sys.stderr, flush=True)
-    if show_progress:
-        print(file=sys.stderr)
-
+    # Small images gain nothing from intra-op threads, and on a busy machine their synchronisation costs far
+    # more than the work: render them on one thread (the caller's setting is restored afterwards).
+    threads = torch.get_num_threads()
+    if H * W <= 65536 and dev.type == "cpu":
+        torch.set_num_threads(1)
+    try:
+        lefts, rights, depths, occs = _render_frames(renderer, poses, f, B, noise_std, noise_gen, antialias,
+                                                     show_progress)
+    finally:
+        torch.set_num_threads(threads)
     depth = torch.stack(depths)[:, None]
     poses_t = torch.as_tensor(poses, device=dev, dtype=torch.float64)
     motions = torch.eye(4, dtype=torch.float64, device=dev).repeat(num_frames, 1, 1)
