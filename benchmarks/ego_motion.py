@@ -18,10 +18,16 @@ tracking and solve, medians over frames; plus our tracker against OpenCV's pyram
 the same 500 points, interleaved. Writes benchmarks/results/ego_motion.json and the README
 table.
 
-    python benchmarks/ego_motion.py            # both rigs (a few minutes on 2 cores, once rendered)
+    python benchmarks/ego_motion.py            # both rigs (about a minute once rendered; rendering ~6 min)
     python benchmarks/ego_motion.py --quick    # few frames: a smoke run
 
 Rendered sequences are cached under benchmarks/results/cache/ (rendering is the slow part).
+
+Threads: torch and OpenCV get the same number, 1 by default. The tensors here are small
+(hundreds of features, a 6x6 system): intra-op threads buy nothing, and on a shared, loaded
+machine OpenMP's spinning worker threads inflated our per-call times 10-100x in trials with
+2 threads (e.g. the linear solve from 0.6 ms to 20-40 ms), which measures the load, not
+the code. ``--threads 2`` is there to check that.
 """
 
 from __future__ import annotations
@@ -96,7 +102,12 @@ def opencv_track(prev8: np.ndarray, next8: np.ndarray, p0: np.ndarray) -> tuple[
 
 
 def opencv_solve(
-    p0: np.ndarray, p1: np.ndarray, good: np.ndarray, disp: np.ndarray, valid: np.ndarray | None, K: np.ndarray,
+    p0: np.ndarray,
+    p1: np.ndarray,
+    good: np.ndarray,
+    disp: np.ndarray,
+    valid: np.ndarray | None,
+    K: np.ndarray,
     baseline: float,
 ) -> tuple[np.ndarray, int]:
     """solvePnPRansac (+ LM refinement on the inliers) with 3-D points from the disparity at ``p0``."""
@@ -131,7 +142,9 @@ def opencv_solve(
 # --------------------------------------------------------------------------- one sequence
 
 
-def run_sequence(seq, max_disp: int, max_features: int, use_stereo: bool) -> dict:
+def run_sequence(
+    seq, max_disp: int, max_features: int, use_stereo: bool, timing_frames: int = 3, timing_repeats: int = 7
+) -> dict:
     K = seq.K[None].float()
     K_np = seq.K.double().numpy()
     bl = torch.tensor([seq.baseline], dtype=torch.float32)
@@ -186,23 +199,32 @@ def run_sequence(seq, max_disp: int, max_features: int, use_stereo: bool) -> dic
             (M, n), t_cs = clock(lambda: opencv_solve(p0, p1, good, d_np, v_np, K_np, seq.baseline))  # noqa: B023
             add(f"opencv [{src}]", M, t_cs if src == "gt" else None, n, n > 0)
 
-    # Our tracker vs OpenCV's LK on the same points (ours detected), interleaved, a few frame pairs.
-    ratios, t_ours, t_lk = [], [], []
-    for t in range(1, min(len(seq), 6)):
+    # Timing, interleaved (ours next to OpenCV, so load bursts hit both), on a few frame pairs: detection,
+    # tracking of the same points (ours detected) by our tracker and by OpenCV's pyramidal LK, and the solves.
+    samples: dict[str, list[float]] = {}
+    for t in range(1, min(len(seq), timing_frames + 1)):
         prev, nxt = seq.left[t - 1 : t], seq.left[t : t + 1]
+        disp = seq.disparity[t - 1 : t]
+        prev8, next8 = to_u8(prev), to_u8(nxt)
         kp, w = detect(prev, max_features=max_features)
         pts = kp[0][w[0] > 0].numpy().astype(np.float32)[:, None]
-        prev8, next8 = to_u8(prev), to_u8(nxt)
-        tm = time_interleaved(
-            {
-                "ours": lambda: track(prev, nxt, kp, w),  # noqa: B023
-                "lk": lambda: cv2.calcOpticalFlowPyrLK(prev8, next8, pts, None, winSize=(21, 21), maxLevel=3),  # noqa: B023
-            },
-            repeats=5,
-        )
-        t_ours.append(tm["ours"]["median_ms"])
-        t_lk.append(tm["lk"]["median_ms"])
-        ratios.append(tm["ours"]["median_ms"] / tm["lk"]["median_ms"])
+        out = track(prev, nxt, kp, w)
+        p0 = opencv_detect(prev8, max_features)
+        p1, good = opencv_track(prev8, next8, p0)
+        d_np = disp[0, 0].numpy().astype(np.float32)
+        fns = {
+            "ours detect": lambda: detect(prev, max_features=max_features),  # noqa: B023
+            "opencv detect": lambda: opencv_detect(prev8, max_features),  # noqa: B023
+            "ours track": lambda: track(prev, nxt, kp, w),  # noqa: B023
+            "opencv track": lambda: cv2.calcOpticalFlowPyrLK(prev8, next8, pts, None, winSize=(21, 21), maxLevel=3),  # noqa: B023
+            "opencv solve": lambda: opencv_solve(p0, p1, good, d_np, None, K_np, seq.baseline),  # noqa: B023
+        }
+        for m in METHODS:
+            fns[f"{m} solve"] = lambda m=m: solve_ego_motion(kp, out.keypoints, disp, K, bl, out.weights, m)  # noqa: B023
+        for name, v in time_interleaved(fns, repeats=timing_repeats).items():
+            samples.setdefault(name, []).append(v["median_ms"])
+            samples.setdefault(name + " min", []).append(v["q1_ms"])
+    timing = {k: statistics.median(v) for k, v in samples.items()}
 
     summary = {}
     for name, e in errs.items():
@@ -227,14 +249,10 @@ def run_sequence(seq, max_disp: int, max_features: int, use_stereo: bool) -> dic
             math.degrees(se3_log(seq.motions[t : t + 1].double())[0, 3:].norm().item()) for t in range(1, len(seq))
         ),
         "errors": summary,
-        "times_ms": {k: statistics.median(v) for k, v in times.items()},
-        "times_min_ms": {k: min(v) for k, v in times.items()},
+        "loop_times_ms": {k: statistics.median(v) for k, v in times.items()},
+        "times_ms": timing,
         "median_tracked": statistics.median(inliers["ours tracked"]),
-        "track_vs_lk": {
-            "ours_ms": statistics.median(t_ours),
-            "lk_ms": statistics.median(t_lk),
-            "ratio": statistics.median(ratios),
-        },
+        "track_vs_lk_ratio": timing["ours track"] / timing["opencv track"],
     }
 
 
@@ -248,14 +266,13 @@ def table(results: dict) -> str:
         for name, e in r["errors"].items():
             method, src = name.split(" [")
             src = src.rstrip("]")
-            if method == "opencv":
-                det, trk, solve = tm["opencv detect"], tm["opencv track"], tm.get("opencv [gt]")
-            else:
-                det, trk, solve = tm["ours detect"], tm["ours track"], tm.get(f"{method} [gt]")
+            who = "opencv" if method == "opencv" else "ours"
+            det, trk = tm[f"{who} detect"], tm[f"{who} track"]
+            solve = tm[f"{method} solve"]
             rows.append(
                 [
                     key, method, src, e["median_t_mm"], e["mean_t_mm"], e["median_t_pct"], e["median_r_deg"],
-                    f"{e['ok_frames']}/{r['frames'] - 1}", det, trk, "-" if src != "gt" else solve,
+                    f"{e['ok_frames']}/{r['frames'] - 1}", det, trk, solve,
                 ]
             )  # fmt: skip
     header = [
@@ -265,13 +282,19 @@ def table(results: dict) -> str:
     out = markdown_table(header, rows)
     lines = [out, ""]
     for key, r in results.items():
-        tv = r["track_vs_lk"]
+        tm = r["times_ms"]
         lines.append(
             f"- {key}: {r['frames'] - 1} frame pairs, {r['image'][1]}x{r['image'][0]}, median step "
             f"{r['median_step_m'] * 1e3:.0f} mm / {r['median_step_deg']:.2f} deg, {r['median_tracked']:.0f} "
-            f"features tracked per frame; our tracker {tv['ours_ms']:.1f} ms vs OpenCV LK {tv['lk_ms']:.1f} ms on "
-            f"the same points ({tv['ratio']:.2f}x)."
+            f"features tracked per frame; tracking the same points: ours {tm['ours track']:.1f} ms, OpenCV LK "
+            f"{tm['opencv track']:.1f} ms ({r['track_vs_lk_ratio']:.1f}x); solve (lower quartile) linear "
+            f"{tm['linear solve min']:.2f}, robust {tm['robust solve min']:.2f}, exact {tm['exact solve min']:.2f}, "
+            f"OpenCV {tm['opencv solve min']:.2f} ms."
         )
+    lines.append(
+        "\nErrors per frame against the renderer's true motion; times are medians of interleaved runs on the "
+        "first frame pairs (detect/track/solve columns: disparity 'gt'), torch and OpenCV on the same threads."
+    )
     return "\n".join(lines)
 
 
@@ -280,7 +303,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="few frames: a smoke run")
     parser.add_argument("--frames", type=int, default=None, help="frames per sequence (default 30 paper, 16 kitti)")
     parser.add_argument("--features", type=int, default=500)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads (see the docstring)")
     parser.add_argument("--no-stereo", action="store_true", help="skip the block-matcher disparity block")
     parser.add_argument("--presets", default="paper,kitti")
     args = parser.parse_args()

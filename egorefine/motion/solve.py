@@ -392,7 +392,7 @@ def solve_ego_motion(
     scale: float = 1.0,
     ransac_hypotheses: int = 64,
     ransac_threshold: float = 2.0,
-    iterations: int = 4,
+    iterations: int = 3,
     seed: int = 0,
     rcond: float | None = None,
 ) -> EgoMotion:
@@ -531,7 +531,7 @@ class EgoMotionSolver(nn.Module):
         scale: float = 1.0,
         ransac_hypotheses: int = 64,
         ransac_threshold: float = 2.0,
-        iterations: int = 4,
+        iterations: int = 3,
         seed: int = 0,
         rcond: float | None = None,
     ) -> None:
