@@ -70,7 +70,7 @@ def read_pfm(path: PathLike) -> torch.Tensor:
     if data.size != count:
         raise ValueRangeError(f"path: {os.fspath(path)!r} is truncated ({data.size} of {count} values)")
     img = data.reshape(height, width, channels)[::-1]  # rows are stored bottom to top
-    return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1), dtype=np.float32))
+    return torch.from_numpy(img.transpose(2, 0, 1).astype(np.float32, order="C", copy=True))
 
 
 def write_pfm(path: PathLike, data: torch.Tensor | np.ndarray, little_endian: bool = True, scale: float = 1.0) -> None:
