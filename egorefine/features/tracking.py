@@ -284,12 +284,14 @@ def _coarse_to_fine(
     refine_radius: int,
     cost: str,
     stop_level: int = 0,
+    edge_level: int = 0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Hard block matching of ``points`` (level-0 px in src) into dst, starting at ``start`` (level-0 px).
 
     Runs the levels from the coarsest down to ``stop_level``. Returns the level-0 positions
     (B, N, 2), the best cost of the last level run (B, N) and a flag (B, N) that is True where
-    level 0's minimum lay on its window's edge (all False if level 0 is not run).
+    the minimum of level ``edge_level`` lay on its window's edge (all False if that level is
+    not run).
     """
     levels = len(pyr_src)
     est = start
@@ -302,8 +304,8 @@ def _coarse_to_fine(
             pyr_src[level], pyr_dst[level], points / scale, est / scale, patch_size, radius, cost
         )
         est = est_l * scale
-        if level == 0:
-            # Only level 0's edge counts: on a coarser level a minimum on the edge may be a
+        if level == edge_level:
+            # Only the last level's edge counts: on a coarser level a minimum on the edge may be a
             # motion just beyond that window, which the finer levels still reach.
             edge = edge | on_edge
     return est, best, edge
@@ -392,15 +394,33 @@ def _track_level0(
     cost: str,
     lk_iters: int,
     temperature: float | None,
+    match_level0: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Full pipeline src -> dst: coarse levels (no autograd), level 0, optional soft step, LK polish."""
+    """Full pipeline src -> dst: coarse levels (no autograd), level 0, optional soft step, LK polish.
+
+    With ``match_level0=False`` (and two levels or more) level 0 skips the block matching: the
+    LK polish (at least one iteration) starts from level 1's estimate, whose window edge is
+    then the one tested. The way back of the forward-backward check uses this.
+    """
     levels = len(pyr_src)
+    skip0 = not match_level0 and levels > 1
     with torch.no_grad():
         src_d = [p.detach() for p in pyr_src]
         dst_d = [p.detach() for p in pyr_dst]
-        est, _, edge = _coarse_to_fine(
-            src_d, dst_d, points.detach(), start.detach(), patch_size, search_radius, refine_radius, cost, 1
+        est, best, edge = _coarse_to_fine(
+            src_d,
+            dst_d,
+            points.detach(),
+            start.detach(),
+            patch_size,
+            search_radius,
+            refine_radius,
+            cost,
+            1,
+            1 if skip0 else 0,
         )
+    if skip0:
+        return _lk_refine(pyr_src[0], pyr_dst[0], points, est, patch_size, max(lk_iters, 1), cost), best, edge
     radius0 = search_radius if levels == 1 else refine_radius
     # Level 0 with autograd: the parabola (or the soft-argmax) links positions to the inputs.
     out, best, edge0 = _match_level(pyr_src[0], pyr_dst[0], points, est, patch_size, radius0, cost)
@@ -578,9 +598,10 @@ def track(
         if fb_check:
             # Track the result back into prev, the search centred on the original keypoint, and
             # measure the round trip. A right match comes back within a pixel or so, so the way
-            # back searches only the two finest levels, refine_radius each (reach 3 x
-            # refine_radius px): a wrong match lands anywhere in that window, on its edge or far
-            # from the start. One LK iteration suffices against a threshold of ~1 px.
+            # back block-matches on level 1 only (radius refine_radius, i.e. 2 x refine_radius
+            # px), then one LK iteration on level 0: a wrong match lands anywhere in that
+            # window, on its edge or far from the start. (With one level: level 0, radius
+            # refine_radius.)
             back, _, back_edge = _track_level0(
                 pyr_next[:2],
                 pyr_prev[:2],
@@ -590,8 +611,9 @@ def track(
                 refine_radius,
                 refine_radius,
                 cost,
-                min(lk_iters, 1),
+                1,
                 None,
+                match_level0=False,
             )
             fb_error = (back - kp_in).norm(dim=-1)
             ok = ok & ~back_edge & (fb_error <= fb_threshold)
