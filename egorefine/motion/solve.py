@@ -56,7 +56,7 @@ from ..core import (
     check_shape,
     eps_like,
 )
-from ..geometry import motion_to_twist, se3_exp, twist_to_motion
+from ..geometry import motion_to_twist, twist_to_motion
 from .field import motion_field_jacobian
 from .robust import LOSSES, robust_loss, robust_weight
 
@@ -489,7 +489,9 @@ def solve_ego_motion(
             [(points_prev[..., 0] - K[:, 0, 2, None]) / fx, (points_prev[..., 1] - K[:, 1, 2, None]) / fy,
              torch.ones_like(disp), inv_depth], dim=-1,
         )  # fmt: skip
-        start = twist_to_motion(torch.where(torch.isfinite(twist), twist, torch.zeros_like(twist)))
+        # twist_to_motion(twist) = exp(-twist), as the matrix exponential of the 4x4 twist matrix (one call).
+        start_twist = torch.where(torch.isfinite(twist), twist, torch.zeros_like(twist))
+        start = torch.linalg.matrix_exp((-start_twist @ _se3_generators(twist)).view(B, 4, 4))
         first = iterations // 2
         late_gate = w if loss == "tukey" else w_in
         stages = [(w_in, "huber", first), (late_gate, loss, iterations - first)]
@@ -505,7 +507,11 @@ def solve_ego_motion(
     # Fallback per item: identity motion, zero twist, no inliers (selected with where, so the
     # finite values of the other branch keep gradients finite).
     twist = torch.where(ok[:, None], twist, torch.zeros_like(twist))
-    motion = twist_to_motion(twist) if method != "exact" else torch.where(ok[:, None, None], motion, se3_exp(twist))
+    if method == "exact":
+        eye = torch.eye(4, dtype=dtype, device=motion.device).expand(B, 4, 4)
+        motion = torch.where(ok[:, None, None], motion, eye)
+    else:
+        motion = twist_to_motion(twist)
     w_out = torch.where(ok[:, None], w_out, torch.zeros_like(w_out))
     num = torch.where(ok, num, torch.zeros_like(num))
     rms = torch.where(ok, rms, torch.zeros_like(rms))
