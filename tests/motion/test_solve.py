@@ -6,7 +6,7 @@ import math
 
 import pytest
 import torch
-from conftest import make_tracks
+from motion_tracks import make_tracks
 
 from egorefine.core import DTypeError, ShapeError, ValueRangeError
 from egorefine.geometry import make_intrinsics, project, se3_inverse, se3_log, transform_points, unproject

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import pytest
 import torch
 
 from egorefine.geometry import make_intrinsics, project, transform_points, twist_to_motion, unproject
@@ -64,8 +63,3 @@ def make_tracks(
     bl = torch.full((B,), baseline, dtype=dtype)
     disp = focal * baseline / Z
     return Tracks(pts, nxt, disp, K, bl, motion, twist, inlier)
-
-
-@pytest.fixture
-def tracks():
-    return make_tracks
