@@ -151,7 +151,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="640x480 / 64 disparities only, fewer repeats")
     parser.add_argument("--synthetic", action="store_true", help="also score one rendered frame per size")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--table-only", action="store_true", help="rewrite the table from the last JSON")
     args = parser.parse_args()
+    if args.table_only:
+        last = json.loads((Path(__file__).resolve().parent / "results" / "stereo.json").read_text())
+        update_readme("stereo", table(last["results"], last["peak_extra_memory_mb_1242x375_128"], last["threads"]))
+        return
     set_threads(args.threads)
 
     configs = [(s, n) for s in SIZES for n in DISPARITIES]
@@ -192,10 +197,10 @@ def main() -> None:
     write_json("stereo", {"threads": args.threads, "quick": args.quick, "results": results,
                           "peak_extra_memory_mb_1242x375_128": memory,
                           "memory_method": "growth of the process RSS high-water mark (VmHWM) in a fresh subprocess"})
-    update_readme("stereo", table(results, memory))
+    update_readme("stereo", table(results, memory, args.threads))
 
 
-def table(results: list[dict], memory: dict) -> str:
+def table(results: list[dict], memory: dict, threads: int) -> str:
     rows = []
     ref = {}
     for r in results:
@@ -212,7 +217,9 @@ def table(results: list[dict], memory: dict) -> str:
                      100 * r["bad2"], 100 * r["density"], time_s, vs_bm, vs_sgbm])
     header = ["data", "size", "D", "method", "EPE px", "bad-1 %", "bad-2 %", "density %", "ms/pair median [IQR]",
               "/BM", "/SGBM"]
-    text = markdown_table(header, rows)
+    text = (f"torch and OpenCV with {threads} thread(s); bad-x and EPE over the pixels each method marks valid, "
+            "density = their share of the pixels with known truth; /BM and /SGBM are time ratios in the same run.\n\n"
+            + markdown_table(header, rows))
     if memory:
         text += "\n\nPeak extra memory at 1242x375, 128 disparities (RSS high-water growth, fresh process): " + \
             ", ".join(f"{k}: {v:.0f} MB" for k, v in memory.items()) + "."

@@ -8,6 +8,7 @@ paths cross every row) and holds about four ``(B, D, H, W)`` volumes.
 
 from __future__ import annotations
 
+import struct
 from typing import NamedTuple
 
 import torch
@@ -29,6 +30,8 @@ _QUANTISATION_VARIANCE = 1.0 / 12.0
 _SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (0.5, 3.0)}
 _TEMPERATURES = {"sad": 0.008, "zncc": 0.05, "census": 0.2}
 _STRIP_ELEMENTS = 1 << 19  # ~2 MB of float32 per strip volume: stays in cache
+# INVALID_COST's float32 bit pattern read as int32 (the encoded value of an out-of-view candidate)
+_INVALID_CODE = struct.unpack("<i", struct.pack("<f", INVALID_COST))[0]
 
 
 class StereoOutput(NamedTuple):
@@ -121,8 +124,7 @@ def _right_view_index(code: torch.Tensor, max_d: int) -> torch.Tensor:
     """Winner of the right view from the encoded left volume (reversed order) by diagonal
     re-indexing: cost_right(xr, d) = cost_left(xr + d, d). Returns the reversed index ``(B, 1, h, W)``."""
     b, num, h, w = code.shape
-    big = torch.tensor(INVALID_COST, dtype=torch.float32).view(torch.int32).item()
-    padded = torch.nn.functional.pad(code, (0, max_d), value=big)
+    padded = torch.nn.functional.pad(code, (0, max_d), value=_INVALID_CODE).contiguous()
     sb, sj, sh, sw = padded.stride()
     # entry [b, j, y, xr] = padded[b, j, y, xr + max_d - 1 - j]
     diag = padded.as_strided((b, num, h, w), (sb, sj - sw, sh, sw), padded.storage_offset() + (max_d - 1) * sw)
