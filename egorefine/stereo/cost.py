@@ -15,7 +15,6 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
-from kornia.filters import spatial_gradient
 
 __all__ = ["prefilter_xsobel", "census_transform", "cost_volume", "COSTS", "INVALID_COST"]
 
@@ -46,7 +45,12 @@ def prefilter_xsobel(image: torch.Tensor, cap: float = 31.0 / 255.0) -> torch.Te
     >>> prefilter_xsobel(torch.rand(2, 1, 6, 7)).shape
     torch.Size([2, 1, 6, 7])
     """
-    gx = spatial_gradient(image, mode="sobel", order=1, normalized=False)[:, :, 0]
+    # the unnormalised 3x3 x-Sobel with replicated borders, i.e. kornia's
+    # spatial_gradient(image, "sobel", normalized=False)[:, :, 0], written separably: on one
+    # channel this is ~10x faster than the convolution kornia dispatches to
+    padded = F.pad(image, (1, 1, 1, 1), mode="replicate")
+    diff = padded[..., 2:] - padded[..., :-2]
+    gx = diff[..., :-2, :] + 2 * diff[..., 1:-1, :] + diff[..., 2:, :]
     return gx.clamp(-cap, cap)
 
 

@@ -86,6 +86,15 @@ def test_census_bits():
     assert census_transform(torch.full((1, 1, 5, 5), 0.5), 5).eq(0).all()
 
 
+def test_prefilter_equals_kornia_sobel():
+    from kornia.filters import spatial_gradient
+
+    gen = torch.Generator().manual_seed(5)
+    x = torch.rand(2, 1, 9, 11, generator=gen, dtype=torch.float64)
+    ref = spatial_gradient(x, mode="sobel", order=1, normalized=False)[:, :, 0].clamp(-0.3, 0.3)
+    assert torch.allclose(prefilter_xsobel(x, cap=0.3), ref)
+
+
 def test_prefilter_caps_and_gradcheck():
     gen = torch.Generator().manual_seed(3)
     x = torch.rand(1, 1, 6, 7, generator=gen, dtype=torch.float64)
