@@ -170,5 +170,7 @@ def rotation_error_deg(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     check_shape(est, ["B", "4", "4"], "est")
     check_shape(gt, ["B", "4", "4"], "gt", {"B": est.shape[0]})
     rel = est[:, :3, :3].transpose(1, 2) @ gt[:, :3, :3]
-    cos = ((rel.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.acos(cos))
+    cos = (rel.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
+    vee = torch.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], dim=-1)
+    # atan2(sin, cos) rather than acos(cos): acos loses angles below ~0.02 degrees in float32.
+    return torch.rad2deg(torch.atan2(0.5 * vee.norm(dim=-1), cos))

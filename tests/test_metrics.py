@@ -66,3 +66,6 @@ def test_motion_errors():
     b = se3_exp(torch.tensor([[0.1, 0.0, 0.03, 0.0, math.radians(2.0), 0.0]]))
     assert rotation_error_deg(a, b).item() == pytest.approx(2.0, abs=1e-3)
     assert translation_error(a, a).item() == 0.0
+    # Small angles survive float32 (acos of the trace would return 0 below ~0.02 degrees).
+    c = se3_exp(torch.tensor([[0.0, 0.0, 0.0, math.radians(0.003), 0.0, 0.0]]))
+    assert rotation_error_deg(a, c @ a).item() == pytest.approx(0.003, rel=0.05)
