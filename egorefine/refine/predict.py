@@ -45,6 +45,7 @@ from typing import NamedTuple
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from ..core import (
     check_choice,
@@ -68,6 +69,8 @@ _MIN_DEPTH_RATIO = 1e-3
 _COVER_SLACK = 0.1
 # The four bilinear neighbours (x0 + i, y0 + j) of a sub-pixel point.
 _CORNERS = ((0, 0), (1, 0), (0, 1), (1, 1))
+# Margin (pixels) of the padded flat layout of target and source maps (see _Padded).
+_PAD = 2
 
 
 class Prediction(NamedTuple):
@@ -89,38 +92,71 @@ class Prediction(NamedTuple):
     confidence: torch.Tensor
 
 
-def _rotate(R: torch.Tensor, vx: torch.Tensor, vy: torch.Tensor, vz: torch.Tensor | float):
-    """``R @ (vx, vy, vz)`` for ``R`` ``(B, 3, 3)`` and components of any shape ``(B, ...)``."""
-    shape = (R.shape[0],) + (1,) * (vx.dim() - 1)
-    r = [[R[:, i, j].reshape(shape) for j in range(3)] for i in range(3)]
-    return tuple(r[i][0] * vx + r[i][1] * vy + r[i][2] * vz for i in range(3))
+def _big(dtype: torch.dtype) -> float:
+    """A finite 'minus infinity' for keys and sentinels: far beyond any disparity, its square still finite."""
+    return min(1e30, torch.finfo(dtype).max ** 0.5)
 
 
-def _bilinear_gather(
-    values: list[torch.Tensor], ok: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor
-) -> list[tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]]:
-    """The four neighbours of sub-pixel points ``(xs, ys)`` ``(B, H, W)`` in maps ``(B, H, W)``.
+def _pixel_motion(motion: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor):
+    """The motion in pixel-homogeneous form (eq. 1 with inverse depth ``d / (f B)``).
 
-    Returns, per neighbour (``_CORNERS`` order), the gathered ``values``, their ``ok`` mask (out-of-image
-    neighbours are not ok) and the bilinear weight, each ``(B, H, W)``.
+    A source pixel ``(x, y)`` with disparity ``d`` moves to ``P = A (x, y, 1) + a d`` (``P_z = Z'/Z``); a
+    target pixel ``T`` sent back at disparity ``d'`` lands at ``G (T, 1) + e d'`` in frame ``t-1``.
+    Returns ``A, a, G, e`` with ``A, G`` ``(B, 3, 3)`` and ``a, e`` ``(B, 3)``.
     """
-    B, H, W = ok.shape
-    x0 = torch.floor(xs.detach().clamp(-2, W + 1))
-    y0 = torch.floor(ys.detach().clamp(-2, H + 1))
-    fu, fv = xs - x0, ys - y0
-    wx, wy = (1 - fu, fu), (1 - fv, fv)
-    in_x = ((x0 >= 0) & (x0 <= W - 1), (x0 >= -1) & (x0 <= W - 2))
-    in_y = ((y0 >= 0) & (y0 <= H - 1), (y0 >= -1) & (y0 <= H - 2))
-    base = (y0 * W + x0).long()
-    flat = [v.reshape(B, -1) for v in values]
-    ok_flat = ok.reshape(B, -1)
-    out = []
-    for i, j in _CORNERS:
-        inside = in_x[i] & in_y[j]
-        idx = torch.where(inside, base + (j * W + i), 0).view(B, -1)
-        gathered = [v.gather(1, idx).view(B, H, W) for v in flat]
-        out.append((gathered, ok_flat.gather(1, idx).view(B, H, W) & inside, wx[i] * wy[j]))
-    return out
+    B = K.shape[0]
+    fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    Kp = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], -1).view(B, 3, 3)
+    Kinv = torch.stack([1 / fx, zero, -cx / fx, zero, 1 / fy, -cy / fy, zero, zero, one], -1).view(B, 3, 3)
+    R, t = motion[:, :3, :3], motion[:, :3, 3:]
+    fb = (fx * baseline).view(B, 1, 1)
+    Rt = R.transpose(1, 2)
+    A, a = Kp @ R @ Kinv, (Kp @ t / fb)[..., 0]
+    G, e = Kp @ Rt @ Kinv, (Kp @ (-(Rt @ t)) / fb)[..., 0]
+    return A, a, G, e
+
+
+def _affine_map(M: torch.Tensor, k: int, xs: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+    """Row ``k`` of ``M (x, y, 1)`` over the pixel grid, ``(B, H, W)`` (xs ``(1, 1, W)``, ys ``(1, H, 1)``)."""
+    B = M.shape[0]
+    return (M[:, k, 0].view(B, 1, 1) * xs + M[:, k, 2].view(B, 1, 1)) + M[:, k, 1].view(B, 1, 1) * ys
+
+
+def _back_project(back: list[torch.Tensor], e: torch.Tensor, disp: torch.Tensor):
+    """Target pixels sent back into frame ``t-1`` at disparity ``disp`` ``(B, H, W)``.
+
+    Returns ``(sx, sy, 1 / h_z, h_z > min)``: the source-frame pixel position, the depth ratio's inverse
+    (clamped first, so never a division by ~0) and where the point is in front of the old camera.
+    """
+    B = disp.shape[0]
+    hx, hy, hz = (torch.addcmul(back[k], disp, e[:, k].view(B, 1, 1)) for k in range(3))
+    inv = hz.clamp_min(_MIN_DEPTH_RATIO).reciprocal()
+    return hx * inv, hy * inv, inv, hz > _MIN_DEPTH_RATIO
+
+
+class _Padded:
+    """Flat ``(B * Hp * Wp,)`` layout of ``(B, H, W)`` maps with ``_PAD`` cells of margin before and
+    ``_PAD + 1`` after, so that every bilinear corner of a point clamped to ``[-_PAD, W + 1]`` has a cell."""
+
+    def __init__(self, B: int, H: int, W: int, device: torch.device) -> None:
+        self.B, self.H, self.W = B, H, W
+        self.Hp, self.Wp = H + 2 * _PAD + 1, W + 2 * _PAD + 1
+        self.size = B * self.Hp * self.Wp
+        self.offset = (torch.arange(B, device=device) * (self.Hp * self.Wp) + _PAD * (self.Wp + 1)).view(B, 1, 1)
+
+    def index(self, x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.int64) -> torch.Tensor:
+        """Flat indices of integer-valued float pixel coordinates ``x, y`` ``(B, H, W)`` in ``[-_PAD, W + _PAD]``."""
+        return (torch.add(x, y, alpha=self.Wp).to(dtype) + self.offset.to(dtype)).view(-1)
+
+    def full(self, value: float, like: torch.Tensor) -> torch.Tensor:
+        return torch.full((self.size,), value, device=like.device, dtype=like.dtype)
+
+    def crop(self, flat: torch.Tensor) -> torch.Tensor:
+        return flat.view(self.B, self.Hp, self.Wp)[:, _PAD : _PAD + self.H, _PAD : _PAD + self.W]
+
+    def pad(self, x: torch.Tensor, fill: float) -> torch.Tensor:
+        return F.pad(x, (_PAD, _PAD + 1, _PAD, _PAD + 1), value=fill).view(-1)
 
 
 def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -149,21 +185,27 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     dims = check_shape(disparity, ["B", "1", "H", "W"], "disparity")
     check_shape(hole, ["B", "1", "H", "W"], "hole", dims)
     B, _, H, W = disparity.shape
+    dtype, device = disparity.dtype, disparity.device
+    big = _big(dtype)
     have = ~hole[:, 0]
     d = disparity[:, 0]
-    cols = torch.arange(W, device=d.device).expand(B, H, W)
-    left = torch.where(have, cols, torch.full_like(cols, -1)).cummax(dim=-1).values
-    right = torch.where(have, cols, torch.full_like(cols, W)).flip(-1).cummin(dim=-1).values.flip(-1)
-    d_left = d.gather(-1, left.clamp(0, W - 1))
-    d_right = d.gather(-1, right.clamp(0, W - 1))
-    left_ok, right_ok = left >= 0, right < W
-    big = torch.full_like(d, torch.finfo(d.dtype).max)
-    row_fill = torch.minimum(torch.where(left_ok, d_left, big), torch.where(right_ok, d_right, big))
-    image_min = torch.where(have, d, big).flatten(1).amin(dim=1)  # (B,)
-    empty = ~have.flatten(1).any(dim=1)
-    image_fill = torch.where(empty, torch.zeros_like(image_min), image_min).view(B, 1, 1).expand(B, H, W)
-    fill = torch.where(left_ok | right_ok, row_fill, image_fill)
-    return torch.where(have, d, fill)[:, None], empty
+    have_i = have.to(torch.int32)
+    cols = torch.arange(1, W + 1, device=device, dtype=torch.int32)
+    # last non-hole column at or left of each pixel (0 = none), first at or right of it (0 = none)
+    left = (have_i * cols).cummax(dim=-1).values
+    right = (have_i * cols.flip(0)).flip(-1).cummax(dim=-1).values.flip(-1)  # W - column, 0 = none
+    rows = (torch.arange(B * H, device=device) * W).view(B, H, 1)
+    flat = d.reshape(-1)
+    no_left, no_right = (left == 0).to(dtype), (right == 0).to(dtype)
+    # a missing side reads column 0 or W - 1 and is pushed to +big, so the minimum ignores it
+    d_left = flat.index_select(0, (rows + (left - 1).clamp_min(0)).view(-1)).view(B, H, W).add_(no_left, alpha=big)
+    d_right = flat.index_select(0, (rows + (W - right).clamp_max(W - 1)).view(-1)).view(B, H, W)
+    row_fill = torch.minimum(d_left, d_right.add_(no_right, alpha=big))
+    image_min = torch.add(d, (~have).to(dtype), alpha=big).flatten(1).amin(dim=1)
+    empty = image_min >= big / 2  # (B,): no non-hole pixel at all
+    image_fill = (image_min * (~empty).to(dtype)).view(B, 1, 1)
+    fill = torch.lerp(row_fill, image_fill.expand(B, H, W), (no_left * no_right))
+    return torch.lerp(fill, d, have.to(dtype))[:, None], empty
 
 
 def predict_disparity(
@@ -253,161 +295,234 @@ def predict_disparity(
     if refine_iterations < 0:
         raise ValueRangeError(f"refine_iterations: must be >= 0, got {refine_iterations}")
 
+    # Without gradients (the refiner's loop) intermediate maps are updated in place; with them, out of place.
+    fast = not (
+        torch.is_grad_enabled()
+        and any(t is not None and t.requires_grad for t in (disparity, motion, K, baseline, variance))
+    )
+    with torch.set_grad_enabled(not fast):
+        return _predict(
+            disparity,
+            motion,
+            K,
+            baseline,
+            variance,
+            valid,
+            mode,
+            process_noise,
+            hole_variance,
+            fill_holes,
+            temperature,
+            refine_iterations,
+            surface_tolerance,
+            fast,
+        )
+
+
+def _predict(
+    disparity: torch.Tensor,
+    motion: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+    variance: torch.Tensor | None,
+    valid: torch.Tensor | None,
+    mode: str,
+    process_noise: float,
+    hole_variance: float,
+    fill_holes: bool,
+    temperature: float,
+    refine_iterations: int,
+    surface_tolerance: float,
+    fast: bool,
+) -> Prediction:
+    """The body of :func:`predict_disparity` (inputs checked); ``fast``: no gradient needed, work in place."""
     B, _, H, W = disparity.shape
     dtype, device = disparity.dtype, disparity.device
     motion, K, baseline = motion.to(dtype), K.to(dtype), baseline.to(dtype)
     d = disparity[:, 0]
-    var = torch.zeros_like(d) if variance is None else variance[:, 0].to(dtype)
+    var = None if variance is None else variance[:, 0].to(dtype)
     src_ok = d >= 0
     if valid is not None:
         src_ok = src_ok & valid[:, 0]
+    big = _big(dtype)
+    slack = 0.5 + _COVER_SLACK
 
-    fx, fy = K[:, 0, 0].view(B, 1, 1), K[:, 1, 1].view(B, 1, 1)
-    cx, cy = K[:, 0, 2].view(B, 1, 1), K[:, 1, 2].view(B, 1, 1)
-    fb = fx * baseline.view(B, 1, 1)
-    R, tr = motion[:, :3, :3], motion[:, :3, 3]
-    Rt, tr_back = R.transpose(1, 2), -(R.transpose(1, 2) @ tr[..., None])[..., 0]  # camera_{t-1}_T_camera_t
-    ys, xs = torch.meshgrid(
-        torch.arange(H, device=device, dtype=dtype), torch.arange(W, device=device, dtype=dtype), indexing="ij"
-    )
-    xs, ys = xs.expand(B, H, W), ys.expand(B, H, W)
-    rx, ry = (xs - cx) / fx, (ys - cy) / fy
-    one = 1.0  # third component of every normalised ray
+    # Pixel-homogeneous form (see _pixel_motion); the grid enters as a column and a row vector.
+    A, a, G, e = _pixel_motion(motion, K, baseline)
+    xs = torch.arange(W, device=device, dtype=dtype).view(1, 1, W)
+    ys = torch.arange(H, device=device, dtype=dtype).view(1, H, 1)
+
+    def per_batch(x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(B, 1, 1)
 
     # ---- move every source point (eq. 1) and project it into frame t
-    rho = d / fb
-    qx, qy, qz = _rotate(R, rx, ry, one)
-    qx = qx + tr[:, 0].view(B, 1, 1) * rho
-    qy = qy + tr[:, 1].view(B, 1, 1) * rho
-    qz = qz + tr[:, 2].view(B, 1, 1) * rho
-    front = qz > _MIN_DEPTH_RATIO
-    qz_safe = qz.clamp_min(_MIN_DEPTH_RATIO)  # clamp before dividing: points behind the camera are masked out
-    u = fx * qx / qz_safe + cx
-    v = fy * qy / qz_safe + cy
-    d_new = d / qz_safe  # f B / Z' with Z' = Z q_z
-    var_new = var / qz_safe**2  # first-order propagation: d' = d / q_z
-    src_ok = src_ok & front & torch.isfinite(u) & torch.isfinite(v)
-    u = torch.where(src_ok, u, -10.0)
-    v = torch.where(src_ok, v, -10.0)
+    Px, Py, Pz = (_affine_map(A, k, xs, ys).addcmul_(d, per_batch(a[:, k])) for k in range(3))
+    src_ok = src_ok & (Pz > _MIN_DEPTH_RATIO)
+    inv = Pz.clamp_min(_MIN_DEPTH_RATIO).reciprocal()  # 1 / q_z, clamped first: points behind are masked out
+    u, v = Px * inv, Py * inv
+    d_new = d * inv  # f B / Z' with Z' = Z q_z
+    var_new = None if var is None else var * inv.square()  # first-order propagation: d' = d / q_z
+    okf = src_ok.to(dtype)
 
-    # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point, bilinear weights.
-    # Kept as four (B, H, W) maps, one per corner (_CORNERS), scattered one after the other.
-    x0 = torch.floor(u.detach().clamp(-2, W + 1))
-    y0 = torch.floor(v.detach().clamp(-2, H + 1))
+    # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point (_CORNERS), in a padded
+    # flat layout: out-of-image corners land in margin cells that are never read back.
+    layout = _Padded(B, H, W, device)
+    x0 = u.detach().clamp(-_PAD, W + 1).floor_()
+    y0 = v.detach().clamp(-_PAD, H + 1).floor_()
     fu, fv = u - x0, v - y0
-    wx, wy = (1 - fu, fu), (1 - fv, fv)
-    in_x = ((x0 >= 0) & (x0 <= W - 1), (x0 >= -1) & (x0 <= W - 2))
-    in_y = ((y0 >= 0) & (y0 <= H - 1), (y0 >= -1) & (y0 <= H - 2))
-    base = (y0 * W + x0).long() + (torch.arange(B, device=device) * (H * W)).view(B, 1, 1)
-    n_flat = B * H * W
+    tgt00 = layout.index(x0, y0)
+    tgts = [tgt00 + (j * layout.Wp + i) for i, j in _CORNERS]
+
+    back = [_affine_map(G, k, xs, ys) for k in range(3)]  # target pixels turned into frame t-1
 
     with torch.no_grad():
-        # Coverage test: send the target centre back into frame t-1 at the moved point's depth and check
-        # that it falls in the source pixel's square (an exact tiling of the source grid). The back-projected
-        # direction is affine in the target pixel, so the four corners are the (x0, y0) one plus constants.
-        rho_n = d_new / fb
-        h0 = _rotate(Rt, (x0 - cx) / fx, (y0 - cy) / fy, one)
-        h0 = [h0[k] + tr_back[:, k].view(B, 1, 1) * rho_n for k in range(3)]
-        step_x = (Rt[:, :, 0] / fx.view(B, 1)).view(B, 3, 1, 1)
-        step_y = (Rt[:, :, 1] / fy.view(B, 1)).view(B, 3, 1, 1)
-        z_slack = torch.full((n_flat,), -torch.inf, device=device, dtype=dtype)
-        z_strict = z_slack.clone()
-        tgts, covers = [], []
-        for i, j in _CORNERS:
-            pair_ok = src_ok & in_x[i] & in_y[j]
-            tgt = torch.where(pair_ok, base + (j * W + i), 0).view(-1)
-            hx, hy, hz = (h0[k] + i * step_x[:, k] + j * step_y[:, k] for k in range(3))
-            hz_safe = hz.clamp_min(_MIN_DEPTH_RATIO)
-            off = torch.maximum((fx * hx / hz_safe + cx - xs).abs(), (fy * hy / hz_safe + cy - ys).abs())
-            covered = pair_ok & (hz > _MIN_DEPTH_RATIO) & (off <= 0.5 + _COVER_SLACK)
-            strict = covered & (off <= 0.5)
-            z_slack.scatter_reduce_(0, tgt, d_new.masked_fill(~covered, -torch.inf).view(-1), "amax")
-            z_strict.scatter_reduce_(0, tgt, d_new.masked_fill(~strict, -torch.inf).view(-1), "amax")
-            tgts.append(tgt)
-            covers.append(covered)
+        # Coverage test: the target centre T sent back into frame t-1 at the moved point's depth must fall in
+        # the source pixel's square. With D = T - (u, v) = (i - fu, j - fv) the back-projection is
+        # N = (x, y, 1) / q_z + G[:, :2] D exactly ((u, v) goes back to (x, y)), so its offset from the source
+        # pixel is E / N_z with E_x = (G00 - x G20, G01 - x G21) . D, E_y likewise with y: no division needed.
+        fud, fvd = fu.detach(), fv.detach()
+        g20, g21 = per_batch(G[:, 2, 0]), per_batch(G[:, 2, 1])
+        col_a, col_b = per_batch(G[:, 0, 0]) - xs * g20, per_batch(G[:, 0, 1]) - xs * g21
+        row_a, row_b = per_batch(G[:, 1, 0]) - ys * g20, per_batch(G[:, 1, 1]) - ys * g21
+        ex0 = torch.addcmul(col_a * fud, col_b, fvd)  # -E_x at corner (0, 0)
+        ey0 = torch.addcmul(row_a * fud, row_b, fvd)
+        nz0 = torch.addcmul(inv - g20 * fud, g21.expand_as(fvd), fvd, value=-1.0)  # N_z at corner (0, 0)
+        thr0 = torch.addcmul(okf - 1.0, nz0, okf, value=slack)  # slack * N_z; -1 for invalid sources
+        del nz0
+        z_slack, z_strict = layout.full(-big, d), layout.full(-big, d)
+        d_det = d_new.detach()
+        keys = []
+        for (i, j), tgt in zip(_CORNERS, tgts, strict=True):
+            off = torch.sub(col_a * i + col_b * j, ex0).abs_()
+            torch.maximum(off, torch.sub(row_a * i + row_b * j, ey0).abs_(), out=off)  # |offset| * N_z
+            thr = thr0 + slack * (i * g20 + j * g21)
+            # key = d' where covered, far below any disparity where not (no branches, no masks)
+            key = torch.add(d_det, torch.sub(off, thr).clamp_min_(0.0), alpha=-big)
+            strict = thr.mul_(-0.5 / slack).add_(off).clamp_min_(0.0)
+            z_slack.scatter_reduce_(0, tgt, key.view(-1), "amax")
+            z_strict.scatter_reduce_(0, tgt, torch.add(d_det, strict, alpha=-big).view(-1), "amax")
+            keys.append(key)
+        del ex0, ey0, thr0, off, thr, strict
         # Each pair above is tested at its own source's depth, so neighbouring squares of one surface may
         # leave hairline cracks (closed by the slack) and the slack may fatten a foreground edge. Decide
         # per target with ONE depth, the nearest candidate's: send the target back at that depth; the
         # source pixel it falls in (an exact tiling) must belong to that surface. If not, the candidate
         # only reached the target through the slack (fattening): take the nearest strict cover instead.
-        zs = torch.where(torch.isfinite(z_slack), z_slack, 0.0).view(B, H, W)
-        g0 = _rotate(Rt, rx, ry, one)  # target rays turned into frame t-1 (reused by the refinement)
-        rho_c = zs / fb
-        gx, gy, gz = (g0[k] + tr_back[:, k].view(B, 1, 1) * rho_c for k in range(3))
-        gz_safe = gz.clamp_min(_MIN_DEPTH_RATIO)
-        sx = torch.round((fx * gx / gz_safe + cx).clamp(-1, W)).long()
-        sy = torch.round((fy * gy / gz_safe + cy).clamp(-1, H)).long()
-        s_in = (sx >= 0) & (sx < W) & (sy >= 0) & (sy < H) & (gz > _MIN_DEPTH_RATIO)
-        s_idx = (sy.clamp(0, H - 1) * W + sx.clamp(0, W - 1)).view(B, -1)
-        s_ok = src_ok.reshape(B, -1).gather(1, s_idx).view(B, H, W) & s_in
-        s_d = d_new.reshape(B, -1).gather(1, s_idx).view(B, H, W)
-        consistent = (s_ok & ((s_d - zs).abs() < surface_tolerance)).view(-1)
-        zbuf = torch.where(consistent | ~torch.isfinite(z_strict), z_slack, z_strict)
-        landed = torch.isfinite(zbuf).view(B, H, W)
-        zbuf = torch.where(landed.view(-1), zbuf, 0.0)
+        zs = layout.crop(z_slack).clamp_min(-1.0)  # -1: nothing landed
+        zt = layout.crop(z_strict).clamp_min(-1.0)
+        del z_slack, z_strict
+        sxf, syf, _, hz_ok = _back_project(back, e, zs.clamp_min(0.0))
+        key_new = layout.pad(torch.addcmul(d_det, okf - 1.0, torch.full_like(okf[:1, :1, :1], big)), -big)
+        s_idx = layout.index(sxf.clamp_(-1, W).round_(), syf.clamp_(-1, H).round_())
+        s_d = key_new.index_select(0, s_idx).view(B, H, W)  # d' of the source pixel it falls in (-big: invalid)
+        swap = ((s_d.sub_(zs).abs_() >= surface_tolerance) | ~hz_ok) & (zt >= 0)
+        zbuf = zs.addcmul_(swap.to(dtype), zt.sub_(zs))  # nearest slack cover, or nearest strict one if inconsistent
+        landed = zbuf >= 0
+        z_pad = layout.pad(zbuf, -1.0)
+        del key_new, s_idx, s_d, swap, zs, zt, sxf, syf
 
-    d_det = d_new.detach()
-    wsum = torch.zeros(n_flat, device=device, dtype=dtype)
-    num, num_var = wsum, wsum
-    for (i, j), tgt, covered in zip(_CORNERS, tgts, covers, strict=True):
-        z_at = zbuf.index_select(0, tgt).view(B, H, W)
-        bw = wx[i] * wy[j] + eps_like(d_new)
+    # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
+    # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
+    wx, wy = (1 - fu, fu), (1 - fv, fv)
+    eps = eps_like(d_new)
+    wsum, num = layout.full(0.0, d), layout.full(0.0, d)
+    num_var = None if var_new is None else layout.full(0.0, d)
+    for (i, j), tgt, key in zip(_CORNERS, tgts, keys, strict=True):
+        z_at = z_pad.index_select(0, tgt).view(B, H, W)
+        with torch.no_grad():
+            if mode == "hard":
+                # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
+                sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # 1.0 / 0.0, in place (keys are done)
+            else:
+                # candidates the z-buffer rejected above as fattening are left out
+                sel = ((key >= 0) & (key <= z_at + surface_tolerance)).to(dtype)
         if mode == "hard":
-            # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
-            w = torch.where(covered & ((d_det - z_at).abs() <= surface_tolerance), bw, 0.0)
+            w = sel.mul_((wx[i] * wy[j]).add_(eps)) if fast else (wx[i] * wy[j] + eps) * sel
         else:
-            # softmax splatting: weights b * exp((d' - m) / T), m = the per-target z-buffer value (no
-            # gradient, for stability); candidates the z-buffer rejected above as fattening are left out.
-            sel = covered & (d_det <= z_at + surface_tolerance)
-            logit = torch.where(sel, (d_new - z_at) / temperature, -60.0).clamp_min(-60.0)
-            w = torch.where(sel, bw * torch.exp(logit), 0.0)
-        wsum = wsum.scatter_add(0, tgt, w.view(-1))
-        num = num.scatter_add(0, tgt, (w * d_new).view(-1))
-        if variance is not None:
-            num_var = num_var.scatter_add(0, tgt, (w * var_new).view(-1))
-    wsum_safe = wsum.clamp_min(eps_like(wsum)).view(B, H, W)  # clamp: empty targets (holes) get 0, not NaN
-    est = num.view(B, H, W) / wsum_safe
-    est_var = torch.zeros_like(est) if variance is None else num_var.view(B, H, W) / wsum_safe
+            # softmax splatting: m = the per-target z-buffer value (no gradient, for stability); selected
+            # candidates have d' <= m + surface_tolerance, so the upper clamp never binds on them.
+            logit = ((d_new - z_at) / temperature).clamp(-60.0, surface_tolerance / temperature + 1.0)
+            w = (wx[i] * wy[j] + eps) * logit.exp() * sel
+        wsum.scatter_add_(0, tgt, w.view(-1))
+        num.scatter_add_(0, tgt, (w * d_new).view(-1))
+        if num_var is not None:
+            num_var.scatter_add_(0, tgt, (w * var_new).view(-1))
+    wsum_safe = layout.crop(wsum).clamp_min(eps)  # clamp: empty targets (holes) get 0, not NaN
+    est = layout.crop(num) / wsum_safe
+    est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
+    del keys, tgts, wsum, num, num_var
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
-    src_maps = [d] if variance is None else [d, var]
+    if refine_iterations > 0:
+        with torch.no_grad():
+            # source disparity where valid, far below any disparity where not: one gather gives value and test
+            key_src = layout.pad(torch.add(d, okf - 1.0, alpha=big), -big)
+            idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
+        d_src_pad = key_src if fast else layout.pad(d, 0.0)
+        var_pad = None if var is None else layout.pad(var, 0.0)
+        a_z = per_batch(a[:, 2])
     for _ in range(refine_iterations):
-        rho = est / fb
-        hx, hy, hz = (g0[k] + tr_back[:, k].view(B, 1, 1) * rho for k in range(3))
-        hz_ok = hz > _MIN_DEPTH_RATIO
-        hz_safe = hz.clamp_min(_MIN_DEPTH_RATIO)
-        sxf = fx * hx / hz_safe + cx
-        syf = fy * hy / hz_safe + cy
-        expect = est / hz_safe  # the source disparity this target value came from
-        wk_sum, d_num, v_num = 0.0, 0.0, 0.0
-        for gathered, ok_k, wk in _bilinear_gather(src_maps, src_ok, sxf, syf):
-            wk = torch.where(ok_k & ((gathered[0] - expect).abs() < surface_tolerance), wk, 0.0)
-            wk_sum = wk_sum + wk
-            d_num = d_num + wk * gathered[0]
-            if variance is not None:
-                v_num = v_num + wk * gathered[1]
-        ok_ref = landed & hz_ok & (wk_sum > 1e-3)
-        wk_sum = wk_sum.clamp_min(1e-3)
-        d_src = d_num / wk_sum
+        sxf, syf, inv_h, hz_ok = _back_project(back, e, est)
+        expect = est * inv_h  # the source disparity this target value came from
+        with torch.no_grad():
+            rx0 = sxf.clamp(-_PAD, W + 1).floor_()
+            ry0 = syf.clamp(-_PAD, H + 1).floor_()
+            idx00 = layout.index(rx0, ry0, idx_dtype)
+        rfu, rfv = sxf - rx0, syf - ry0
+        rwx, rwy = (1 - rfu, rfu), (1 - rfv, rfv)
+        wk_sum, d_num, v_num = None, None, None
+        for i, j in _CORNERS:
+            idx = idx00 + (j * layout.Wp + i)
+            g = key_src.index_select(0, idx).view(B, H, W)
+            with torch.no_grad():
+                same = torch.sub(g, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
+            if fast:
+                wk = same.mul_(rwx[i]).mul_(rwy[j])
+                if wk_sum is None:
+                    wk_sum, d_num = wk.clone(), wk * g
+                else:
+                    wk_sum.add_(wk)
+                    d_num.addcmul_(wk, g)
+            else:
+                wk = rwx[i] * rwy[j] * same
+                gv = d_src_pad.index_select(0, idx).view(B, H, W)
+                wk_sum = wk if wk_sum is None else wk_sum + wk
+                d_num = wk * gv if d_num is None else d_num + wk * gv
+            if var_pad is not None:
+                vk = var_pad.index_select(0, idx).view(B, H, W)
+                if fast:
+                    v_num = wk * vk if v_num is None else v_num.addcmul_(wk, vk)
+                else:
+                    v_num = wk * vk if v_num is None else v_num + wk * vk
+        with torch.no_grad():
+            ok_ref = landed & hz_ok & (wk_sum > 1e-3)
+        wk_safe = wk_sum.clamp_min_(1e-3) if fast else wk_sum.clamp_min(1e-3)
+        d_src = d_num.div_(wk_safe) if fast else d_num / wk_safe
         # move the sampled point forward again (eq. 1); only its new depth ratio q_z is needed
-        qz2 = R[:, 2, 0].view(B, 1, 1) * (sxf - cx) / fx + R[:, 2, 1].view(B, 1, 1) * (syf - cy) / fy
-        qz2 = qz2 + R[:, 2, 2].view(B, 1, 1) + tr[:, 2].view(B, 1, 1) * d_src / fb
-        ok_ref = ok_ref & (qz2 > _MIN_DEPTH_RATIO)
-        qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
-        est = torch.where(ok_ref, d_src / qz2, est)
-        if variance is not None:
-            v_src = v_num / wk_sum
-            est_var = torch.where(ok_ref, v_src / qz2**2, est_var)
+        qz2 = torch.addcmul(per_batch(A[:, 2, 0]) * sxf + per_batch(A[:, 2, 2]), syf, per_batch(A[:, 2, 1]))
+        qz2 = qz2.addcmul_(d_src, a_z)
+        with torch.no_grad():
+            ok_ref = (ok_ref & (qz2 > _MIN_DEPTH_RATIO)).to(dtype)
+        if fast:
+            qz2.clamp_min_(_MIN_DEPTH_RATIO)
+            est = torch.lerp(est, d_src.div_(qz2), ok_ref)
+            if est_var is not None:
+                est_var = torch.lerp(est_var, v_num.div_(wk_safe).div_(qz2.square_()), ok_ref)
+        else:
+            qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
+            est = torch.lerp(est, d_src / qz2, ok_ref)
+            if est_var is not None:
+                est_var = torch.lerp(est_var, v_num / wk_safe / qz2.square(), ok_ref)
 
-    hole = ~landed
-    est = torch.where(landed, est, 0.0)[:, None]
-    hole4 = hole[:, None]
+    landed_f = landed.to(dtype)
+    hole4 = ~landed[:, None]
+    est = (est * landed_f)[:, None]
     if fill_holes:
         est, _ = fill_holes_background(est, hole4)
-    out_var = torch.where(landed, est_var + process_noise, hole_variance)[:, None]
-    confidence = torch.where(hole4, 0.0, 1.0 / (1.0 + out_var))
+    carried = (est_var + process_noise) if est_var is not None else torch.full_like(landed_f, process_noise)
+    out_var = torch.lerp(torch.full_like(landed_f, hole_variance), carried, landed_f)[:, None]
+    confidence = (landed_f[:, None] / (1.0 + out_var))
     return Prediction(est, out_var, hole4, ~hole4, confidence)
-
 
 class PredictDisparity(nn.Module):
     """Module form of :func:`predict_disparity`: stores the settings, ``forward`` calls the function.
