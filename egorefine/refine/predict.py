@@ -220,7 +220,7 @@ def predict_disparity(
     hole_variance: float = 100.0,
     fill_holes: bool = True,
     temperature: float = 0.1,
-    refine_iterations: int = 2,
+    refine_iterations: int = 1,
     surface_tolerance: float = 0.5,
 ) -> Prediction:
     """Predict frame ``t``'s disparity by moving every 3-D point of frame ``t-1`` (PAPER.md eq. 1).
@@ -412,45 +412,59 @@ def _predict(
         zt = layout.crop(z_strict).clamp_min(-1.0)
         del z_slack, z_strict
         sxf, syf, _, hz_ok = _back_project(back, e, zs.clamp_min(0.0))
-        key_new = layout.pad(torch.addcmul(d_det, okf - 1.0, torch.full_like(okf[:1, :1, :1], big)), -big)
+        key_new = layout.pad(torch.add(d_det, okf - 1.0, alpha=big), -big)  # d' of valid sources, -big elsewhere
         s_idx = layout.index(sxf.clamp_(-1, W).round_(), syf.clamp_(-1, H).round_())
-        s_d = key_new.index_select(0, s_idx).view(B, H, W)  # d' of the source pixel it falls in (-big: invalid)
-        swap = ((s_d.sub_(zs).abs_() >= surface_tolerance) | ~hz_ok) & (zt >= 0)
-        zbuf = zs.addcmul_(swap.to(dtype), zt.sub_(zs))  # nearest slack cover, or nearest strict one if inconsistent
+        s_d = key_new.index_select(0, s_idx).view(B, H, W)  # d' of the source pixel it falls in
+        consistent = ((s_d - zs).abs_() < surface_tolerance) & hz_ok
+        swap = (~consistent & (zt >= 0)).to(dtype)
+        zbuf = zs.addcmul_(swap, zt.sub_(zs))  # nearest slack cover, or the nearest strict one where inconsistent
         landed = zbuf >= 0
-        z_pad = layout.pad(zbuf, -1.0)
-        del key_new, s_idx, s_d, swap, zs, zt, sxf, syf
+        del key_new, swap, zt, sxf, syf
 
-    # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
-    # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
-    wx, wy = (1 - fu, fu), (1 - fv, fv)
-    eps = eps_like(d_new)
-    wsum, num = layout.full(0.0, d), layout.full(0.0, d)
-    num_var = None if var_new is None else layout.full(0.0, d)
-    for (i, j), tgt, key in zip(_CORNERS, tgts, keys, strict=True):
-        z_at = z_pad.index_select(0, tgt).view(B, H, W)
+    splat = mode == "soft" or refine_iterations == 0
+    if not splat:
+        # Hard mode with refinement: the refinement only needs a start on the right surface. Start from the
+        # d' of the source pixel the target falls in (on the z-buffer's surface where consistent), else from the
+        # z-buffer value; where the refinement cannot improve it, that source's d' and variance are kept.
         with torch.no_grad():
+            consistent_f = consistent.to(dtype)
+        if not fast:
+            s_d = layout.pad(d_new, 0.0).index_select(0, s_idx).view(B, H, W)
+        est = torch.lerp(zbuf, s_d, consistent_f)
+        est_var = None if var_new is None else layout.pad(var_new, 0.0).index_select(0, s_idx).view(B, H, W)
+    else:
+        # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
+        # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
+        z_pad = layout.pad(zbuf, -1.0)
+        wx, wy = (1 - fu, fu), (1 - fv, fv)
+        eps = eps_like(d_new)
+        wsum, num = layout.full(0.0, d), layout.full(0.0, d)
+        num_var = None if var_new is None else layout.full(0.0, d)
+        for (i, j), tgt, key in zip(_CORNERS, tgts, keys, strict=True):
+            z_at = z_pad.index_select(0, tgt).view(B, H, W)
+            with torch.no_grad():
+                if mode == "hard":
+                    # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
+                    sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # 1.0 / 0.0, in place (keys are done)
+                else:
+                    # candidates the z-buffer rejected above as fattening are left out
+                    sel = ((key >= 0) & (key <= z_at + surface_tolerance)).to(dtype)
             if mode == "hard":
-                # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
-                sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # 1.0 / 0.0, in place (keys are done)
+                w = sel.mul_((wx[i] * wy[j]).add_(eps)) if fast else (wx[i] * wy[j] + eps) * sel
             else:
-                # candidates the z-buffer rejected above as fattening are left out
-                sel = ((key >= 0) & (key <= z_at + surface_tolerance)).to(dtype)
-        if mode == "hard":
-            w = sel.mul_((wx[i] * wy[j]).add_(eps)) if fast else (wx[i] * wy[j] + eps) * sel
-        else:
-            # softmax splatting: m = the per-target z-buffer value (no gradient, for stability); selected
-            # candidates have d' <= m + surface_tolerance, so the upper clamp never binds on them.
-            logit = ((d_new - z_at) / temperature).clamp(-60.0, surface_tolerance / temperature + 1.0)
-            w = (wx[i] * wy[j] + eps) * logit.exp() * sel
-        wsum.scatter_add_(0, tgt, w.view(-1))
-        num.scatter_add_(0, tgt, (w * d_new).view(-1))
-        if num_var is not None:
-            num_var.scatter_add_(0, tgt, (w * var_new).view(-1))
-    wsum_safe = layout.crop(wsum).clamp_min(eps)  # clamp: empty targets (holes) get 0, not NaN
-    est = layout.crop(num) / wsum_safe
-    est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
-    del keys, tgts, wsum, num, num_var
+                # softmax splatting: m = the per-target z-buffer value (no gradient, for stability); selected
+                # candidates have d' <= m + surface_tolerance, so the upper clamp never binds on them.
+                logit = ((d_new - z_at) / temperature).clamp(-60.0, surface_tolerance / temperature + 1.0)
+                w = (wx[i] * wy[j] + eps) * logit.exp() * sel
+            wsum.scatter_add_(0, tgt, w.view(-1))
+            num.scatter_add_(0, tgt, (w * d_new).view(-1))
+            if num_var is not None:
+                num_var.scatter_add_(0, tgt, (w * var_new).view(-1))
+        wsum_safe = layout.crop(wsum).clamp_min(eps)  # clamp: empty targets (holes) get 0, not NaN
+        est = layout.crop(num) / wsum_safe
+        est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
+        del wsum, num, num_var
+    del s_idx, s_d, consistent, keys, tgts
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
     if refine_iterations > 0:
@@ -541,7 +555,7 @@ class PredictDisparity(nn.Module):
         hole_variance: float = 100.0,
         fill_holes: bool = True,
         temperature: float = 0.1,
-        refine_iterations: int = 2,
+        refine_iterations: int = 1,
         surface_tolerance: float = 0.5,
     ) -> None:
         super().__init__()
