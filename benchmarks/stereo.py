@@ -19,13 +19,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
-import torch
+# OpenMP threads that spin while waiting turn every one of the matcher's many mid-sized torch
+# ops into a scheduler time slice on a shared, oversubscribed machine (measured here: 2 threads
+# took ~2 s per 640x480 pair spinning, ~0.18 s passive). Must be set before torch loads OpenMP.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import markdown_table, set_threads, time_interleaved, update_readme, write_json  # noqa: E402
@@ -194,7 +200,8 @@ def main() -> None:
             memory[name] = peak_memory(OURS[name])
             print(f"peak extra memory 1242x375/128 {name}: {memory[name]:.0f} MB", flush=True)
 
-    write_json("stereo", {"threads": args.threads, "quick": args.quick, "results": results,
+    write_json("stereo", {"threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                          "quick": args.quick, "results": results,
                           "peak_extra_memory_mb_1242x375_128": memory,
                           "memory_method": "growth of the process RSS high-water mark (VmHWM) in a fresh subprocess"})
     update_readme("stereo", table(results, memory, args.threads))
@@ -217,7 +224,8 @@ def table(results: list[dict], memory: dict, threads: int) -> str:
                      100 * r["bad2"], 100 * r["density"], time_s, vs_bm, vs_sgbm])
     header = ["data", "size", "D", "method", "EPE px", "bad-1 %", "bad-2 %", "density %", "ms/pair median [IQR]",
               "/BM", "/SGBM"]
-    text = (f"torch and OpenCV with {threads} thread(s); bad-x and EPE over the pixels each method marks valid, "
+    text = (f"torch and OpenCV with {threads} thread(s) (OMP_WAIT_POLICY=PASSIVE); bad-x and EPE over the "
+            "pixels each method marks valid, "
             "density = their share of the pixels with known truth; /BM and /SGBM are time ratios in the same run.\n\n"
             + markdown_table(header, rows))
     if memory:
