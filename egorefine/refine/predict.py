@@ -189,23 +189,21 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     big = _big(dtype)
     have = ~hole[:, 0]
     d = disparity[:, 0]
-    have_i = have.to(torch.int32)
-    cols = torch.arange(1, W + 1, device=device, dtype=torch.int32)
-    # last non-hole column at or left of each pixel (0 = none), first at or right of it (0 = none)
-    left = (have_i * cols).cummax(dim=-1).values
-    right = (have_i * cols.flip(0)).flip(-1).cummax(dim=-1).values.flip(-1)  # W - column, 0 = none
-    rows = (torch.arange(B * H, device=device) * W).view(B, H, 1)
-    flat = d.reshape(-1)
-    no_left, no_right = (left == 0).to(dtype), (right == 0).to(dtype)
-    # a missing side reads column 0 or W - 1 and is pushed to +big, so the minimum ignores it
-    d_left = flat.index_select(0, (rows + (left - 1).clamp_min(0)).view(-1)).view(B, H, W).add_(no_left, alpha=big)
-    d_right = flat.index_select(0, (rows + (W - right).clamp_max(W - 1)).view(-1)).view(B, H, W)
-    row_fill = torch.minimum(d_left, d_right.add_(no_right, alpha=big))
-    image_min = torch.add(d, (~have).to(dtype), alpha=big).flatten(1).amin(dim=1)
+    have_f = have.to(dtype)
+    cols = torch.arange(1, W + 1, device=device, dtype=dtype)
+    # running maximum of (column + 1) over non-hole pixels: its index is the nearest non-hole column on the
+    # left (value 0: none); the same on the mirrored row gives the nearest one on the right
+    left, left_at = (have_f * cols).cummax(dim=-1)
+    right, right_at = (have_f.flip(-1) * cols).cummax(dim=-1)
+    # a missing side is pushed to +big, so the minimum ignores it
+    d_left = d.gather(-1, left_at).add_((left == 0).to(dtype), alpha=big)
+    d_right = d.flip(-1).gather(-1, right_at).add_((right == 0).to(dtype), alpha=big).flip(-1)
+    row_fill = torch.minimum(d_left, d_right)
+    image_min = torch.add(d, 1.0 - have_f, alpha=big).flatten(1).amin(dim=1)
     empty = image_min >= big / 2  # (B,): no non-hole pixel at all
-    image_fill = (image_min * (~empty).to(dtype)).view(B, 1, 1)
-    fill = torch.lerp(row_fill, image_fill.expand(B, H, W), (no_left * no_right))
-    return torch.lerp(fill, d, have.to(dtype))[:, None], empty
+    image_fill = (image_min * (~empty).to(dtype)).view(B, 1, 1).expand(B, H, W)
+    fill = torch.lerp(row_fill, image_fill, (row_fill >= big / 2).to(dtype))
+    return torch.lerp(fill, d, have_f)[:, None], empty
 
 
 def predict_disparity(
@@ -370,8 +368,8 @@ def _predict(
     x0 = u.detach().clamp(-_PAD, W + 1).floor_()
     y0 = v.detach().clamp(-_PAD, H + 1).floor_()
     fu, fv = u - x0, v - y0
-    tgt00 = layout.index(x0, y0)
-    tgts = [tgt00 + (j * layout.Wp + i) for i, j in _CORNERS]
+    tgt = layout.index(x0, y0)  # of corner (0, 0); corner (i, j) is read and written through a view shifted by
+    shifts = [j * layout.Wp + i for i, j in _CORNERS]  # j * Wp + i cells, with the same index
 
     back = [_affine_map(G, k, xs, ys) for k in range(3)]  # target pixels turned into frame t-1
 
@@ -392,15 +390,15 @@ def _predict(
         z_slack, z_strict = layout.full(-big, d), layout.full(-big, d)
         d_det = d_new.detach()
         keys = []
-        for (i, j), tgt in zip(_CORNERS, tgts, strict=True):
+        for (i, j), c in zip(_CORNERS, shifts, strict=True):
             off = torch.sub(col_a * i + col_b * j, ex0).abs_()
             torch.maximum(off, torch.sub(row_a * i + row_b * j, ey0).abs_(), out=off)  # |offset| * N_z
             thr = thr0 + slack * (i * g20 + j * g21)
             # key = d' where covered, far below any disparity where not (no branches, no masks)
             key = torch.add(d_det, torch.sub(off, thr).clamp_min_(0.0), alpha=-big)
             strict = thr.mul_(-0.5 / slack).add_(off).clamp_min_(0.0)
-            z_slack.scatter_reduce_(0, tgt, key.view(-1), "amax")
-            z_strict.scatter_reduce_(0, tgt, torch.add(d_det, strict, alpha=-big).view(-1), "amax")
+            z_slack[c:].scatter_reduce_(0, tgt, key.view(-1), "amax")
+            z_strict[c:].scatter_reduce_(0, tgt, torch.add(d_det, strict, alpha=-big).view(-1), "amax")
             keys.append(key)
         del ex0, ey0, thr0, off, thr, strict
         # Each pair above is tested at its own source's depth, so neighbouring squares of one surface may
@@ -440,8 +438,8 @@ def _predict(
         eps = eps_like(d_new)
         wsum, num = layout.full(0.0, d), layout.full(0.0, d)
         num_var = None if var_new is None else layout.full(0.0, d)
-        for (i, j), tgt, key in zip(_CORNERS, tgts, keys, strict=True):
-            z_at = z_pad.index_select(0, tgt).view(B, H, W)
+        for (i, j), c, key in zip(_CORNERS, shifts, keys, strict=True):
+            z_at = z_pad[c:].index_select(0, tgt).view(B, H, W)
             with torch.no_grad():
                 if mode == "hard":
                     # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
@@ -456,15 +454,15 @@ def _predict(
                 # candidates have d' <= m + surface_tolerance, so the upper clamp never binds on them.
                 logit = ((d_new - z_at) / temperature).clamp(-60.0, surface_tolerance / temperature + 1.0)
                 w = (wx[i] * wy[j] + eps) * logit.exp() * sel
-            wsum.scatter_add_(0, tgt, w.view(-1))
-            num.scatter_add_(0, tgt, (w * d_new).view(-1))
+            wsum[c:].scatter_add_(0, tgt, w.view(-1))
+            num[c:].scatter_add_(0, tgt, (w * d_new).view(-1))
             if num_var is not None:
-                num_var.scatter_add_(0, tgt, (w * var_new).view(-1))
+                num_var[c:].scatter_add_(0, tgt, (w * var_new).view(-1))
         wsum_safe = layout.crop(wsum).clamp_min(eps)  # clamp: empty targets (holes) get 0, not NaN
         est = layout.crop(num) / wsum_safe
         est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
         del wsum, num, num_var
-    del s_idx, s_d, consistent, keys, tgts
+    del s_idx, s_d, consistent, keys, tgt
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
     if refine_iterations > 0:
@@ -485,9 +483,8 @@ def _predict(
         rfu, rfv = sxf - rx0, syf - ry0
         rwx, rwy = (1 - rfu, rfu), (1 - rfv, rfv)
         wk_sum, d_num, v_num = None, None, None
-        for i, j in _CORNERS:
-            idx = idx00 + (j * layout.Wp + i)
-            g = key_src.index_select(0, idx).view(B, H, W)
+        for (i, j), c in zip(_CORNERS, shifts, strict=True):
+            g = key_src[c:].index_select(0, idx00).view(B, H, W)
             with torch.no_grad():
                 same = torch.sub(g, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
             if fast:
@@ -499,11 +496,11 @@ def _predict(
                     d_num.addcmul_(wk, g)
             else:
                 wk = rwx[i] * rwy[j] * same
-                gv = d_src_pad.index_select(0, idx).view(B, H, W)
+                gv = d_src_pad[c:].index_select(0, idx00).view(B, H, W)
                 wk_sum = wk if wk_sum is None else wk_sum + wk
                 d_num = wk * gv if d_num is None else d_num + wk * gv
             if var_pad is not None:
-                vk = var_pad.index_select(0, idx).view(B, H, W)
+                vk = var_pad[c:].index_select(0, idx00).view(B, H, W)
                 if fast:
                     v_num = wk * vk if v_num is None else v_num.addcmul_(wk, vk)
                 else:
