@@ -57,9 +57,9 @@ class RigPreset:
 
 PRESETS: dict[str, RigPreset] = {
     # The paper's rig: 640x480, f = 3.5 mm / 8.8 um = 398 px, B = 8 cm, 7 frames/s, ~0.1 m per frame indoors.
-    "paper": RigPreset(480, 640, 398.0, 0.08, 7.0, 0.1, 1.0, 1.2, 0.004, 14.0, "corridor"),
+    "paper": RigPreset(480, 640, 398.0, 0.08, 7.0, 0.1, 1.0, 1.2, 0.004, 12.0, "corridor"),
     # KITTI-like: 1242x375, f = 721.5 px, B = 0.54 m, 10 frames/s, ~1 m per frame, depths ~5-80 m.
-    "kitti": RigPreset(375, 1242, 721.5377, 0.5372, 10.0, 1.0, 6.0, 1.65, 0.010, 75.0, "street"),
+    "kitti": RigPreset(375, 1242, 721.5377, 0.5372, 10.0, 1.0, 6.0, 1.65, 0.010, 60.0, "street"),
 }
 
 SCENES: dict[str, str] = {
@@ -292,7 +292,7 @@ def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.rando
     s = b.s
     if scene == "corridor":
         b.room(half_width=1.5 * s, height_above=1.5 * s, back=3.0 * s)
-        b.side_objects(clearance=0.7 * s, spacing=1.2 * s, tall=1.5 * s)
+        b.side_objects(clearance=0.85 * s, spacing=1.2 * s, tall=1.5 * s)
         b.hanging(spacing=3.0 * s, clearance_above=0.55 * s)
         # A few obstacles on the end wall region make the far field less flat.
         for _ in range(3):
@@ -405,7 +405,7 @@ class _Renderer:
         self.face_A = t(A)
         self.face_off = t(off)
         self.face_texel = t(scl)
-        self.face_gain = t(rng.uniform(0.7, 1.05, n_faces))
+        self.face_gain = t(rng.uniform(0.9, 1.25, n_faces))
         self.face_bias = t(rng.uniform(-0.05, 0.05, n_faces))
         # A directional light (the sun outdoors, a window indoors): constant over each planar face.
         sun = np.array([0.4, -0.8, 0.45])
@@ -551,7 +551,7 @@ class _Renderer:
             r2 = (to_light * to_light).sum(-1)
             lam = ((to_light * normal).sum(-1) * r2.rsqrt()).clamp_min(0.0)
             irradiance += lam / (1.0 + r2 / self.light_range**2)
-        shading = 0.5 + 0.5 * (1.0 - torch.exp(-1.5 * irradiance)) + self.sun_weight * self.face_sun[face]
+        shading = 0.55 + 0.45 * (1.0 - torch.exp(-1.5 * irradiance)) + self.sun_weight * self.face_sun[face]
         value = albedo * shading.clamp_max(1.0) * self.face_gain[face] + self.face_bias[face]
         return value.clamp(0.02, 0.98)
 
