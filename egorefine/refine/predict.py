@@ -123,7 +123,7 @@ def _affine_map(M: torch.Tensor, k: int, xs: torch.Tensor, ys: torch.Tensor) -> 
     return (M[:, k, 0].view(B, 1, 1) * xs + M[:, k, 2].view(B, 1, 1)) + M[:, k, 1].view(B, 1, 1) * ys
 
 
-def _back_project(back: list[torch.Tensor], e: torch.Tensor, disp: torch.Tensor):
+def _back_project(back: list[torch.Tensor], e: torch.Tensor, disp: torch.Tensor, inplace: bool = False):
     """Target pixels sent back into frame ``t-1`` at disparity ``disp`` ``(B, H, W)``.
 
     Returns ``(sx, sy, 1 / h_z, h_z > min)``: the source-frame pixel position, the depth ratio's inverse
@@ -131,8 +131,12 @@ def _back_project(back: list[torch.Tensor], e: torch.Tensor, disp: torch.Tensor)
     """
     B = disp.shape[0]
     hx, hy, hz = (torch.addcmul(back[k], disp, e[:, k].view(B, 1, 1)) for k in range(3))
+    front = hz > _MIN_DEPTH_RATIO
+    if inplace:  # no gradient: reuse the buffers
+        inv = hz.clamp_min_(_MIN_DEPTH_RATIO).reciprocal_()
+        return hx.mul_(inv), hy.mul_(inv), inv, front
     inv = hz.clamp_min(_MIN_DEPTH_RATIO).reciprocal()
-    return hx * inv, hy * inv, inv, hz > _MIN_DEPTH_RATIO
+    return hx * inv, hy * inv, inv, front
 
 
 class _Padded:
@@ -389,18 +393,25 @@ def _predict(
         del nz0
         z_slack, z_strict = layout.full(-big, d), layout.full(-big, d)
         d_det = d_new.detach()
-        keys = []
+        keys = []  # the slack keys, kept for the splatting pass (soft mode, or hard without refinement)
+        off, excess = torch.empty_like(d_det), torch.empty_like(d_det)
+        k_strict = 1.0 - 0.5 / slack  # strict excess = slack excess + k_strict * threshold
         for (i, j), c in zip(_CORNERS, shifts, strict=True):
-            off = torch.sub(col_a * i + col_b * j, ex0).abs_()
-            torch.maximum(off, torch.sub(row_a * i + row_b * j, ey0).abs_(), out=off)  # |offset| * N_z
-            thr = thr0 + slack * (i * g20 + j * g21)
+            s = slack * (i * g20 + j * g21)  # the threshold's change from corner (0, 0)
+            torch.sub(col_a * i + col_b * j, ex0, out=off).abs_()
+            torch.maximum(off, torch.sub(row_a * i + row_b * j, ey0, out=excess).abs_(), out=off)  # |offset| N_z
+            torch.sub(off, thr0, out=excess).sub_(s)  # > 0: not covered
+            torch.add(excess, thr0, alpha=k_strict, out=off).add_(s * k_strict)  # > 0: not strictly covered
             # key = d' where covered, far below any disparity where not (no branches, no masks)
-            key = torch.add(d_det, torch.sub(off, thr).clamp_min_(0.0), alpha=-big)
-            strict = thr.mul_(-0.5 / slack).add_(off).clamp_min_(0.0)
+            key = torch.add(d_det, excess.clamp_min_(0.0), alpha=-big, out=excess)
             z_slack[c:].scatter_reduce_(0, tgt, key.view(-1), "amax")
-            z_strict[c:].scatter_reduce_(0, tgt, torch.add(d_det, strict, alpha=-big).view(-1), "amax")
-            keys.append(key)
-        del ex0, ey0, thr0, off, thr, strict
+            z_strict[c:].scatter_reduce_(
+                0, tgt, torch.add(d_det, off.clamp_min_(0.0), alpha=-big, out=off).view(-1), "amax"
+            )
+            if mode == "soft" or refine_iterations == 0:
+                keys.append(key)
+                excess = torch.empty_like(d_det)
+        del ex0, ey0, thr0, off, excess
         # Each pair above is tested at its own source's depth, so neighbouring squares of one surface may
         # leave hairline cracks (closed by the slack) and the slack may fatten a foreground edge. Decide
         # per target with ONE depth, the nearest candidate's: send the target back at that depth; the
@@ -409,7 +420,7 @@ def _predict(
         zs = layout.crop(z_slack).clamp_min(-1.0)  # -1: nothing landed
         zt = layout.crop(z_strict).clamp_min(-1.0)
         del z_slack, z_strict
-        sxf, syf, _, hz_ok = _back_project(back, e, zs.clamp_min(0.0))
+        sxf, syf, _, hz_ok = _back_project(back, e, zs.clamp_min(0.0), True)
         key_new = layout.pad(torch.add(d_det, okf - 1.0, alpha=big), -big)  # d' of valid sources, -big elsewhere
         s_idx = layout.index(sxf.clamp_(-1, W).round_(), syf.clamp_(-1, H).round_())
         s_d = key_new.index_select(0, s_idx).view(B, H, W)  # d' of the source pixel it falls in
@@ -417,6 +428,8 @@ def _predict(
         swap = (~consistent & (zt >= 0)).to(dtype)
         zbuf = zs.addcmul_(swap, zt.sub_(zs))  # nearest slack cover, or the nearest strict one where inconsistent
         landed = zbuf >= 0
+        # the source pixel nearest to it inside the image (its variance is carried in hard mode)
+        s_near = layout.index(sxf.clamp_(0, W - 1), syf.clamp_(0, H - 1)) if var_new is not None else None
         del key_new, swap, zt, sxf, syf
 
     splat = mode == "soft" or refine_iterations == 0
@@ -429,7 +442,7 @@ def _predict(
         if not fast:
             s_d = layout.pad(d_new, 0.0).index_select(0, s_idx).view(B, H, W)
         est = torch.lerp(zbuf, s_d, consistent_f)
-        est_var = None if var_new is None else layout.pad(var_new, 0.0).index_select(0, s_idx).view(B, H, W)
+        est_var = None if var_new is None else layout.pad(var_new, 0.0).index_select(0, s_near).view(B, H, W)
     else:
         # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
         # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
@@ -462,7 +475,7 @@ def _predict(
         est = layout.crop(num) / wsum_safe
         est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
         del wsum, num, num_var
-    del s_idx, s_d, consistent, keys, tgt
+    del s_idx, s_near, s_d, consistent, keys, tgt
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
     if refine_iterations > 0:
@@ -471,10 +484,9 @@ def _predict(
             key_src = layout.pad(torch.add(d, okf - 1.0, alpha=big), -big)
             idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
         d_src_pad = key_src if fast else layout.pad(d, 0.0)
-        var_pad = None if var is None else layout.pad(var, 0.0)
         a_z = per_batch(a[:, 2])
     for _ in range(refine_iterations):
-        sxf, syf, inv_h, hz_ok = _back_project(back, e, est)
+        sxf, syf, inv_h, hz_ok = _back_project(back, e, est, fast)
         expect = est * inv_h  # the source disparity this target value came from
         with torch.no_grad():
             rx0 = sxf.clamp(-_PAD, W + 1).floor_()
@@ -482,7 +494,7 @@ def _predict(
             idx00 = layout.index(rx0, ry0, idx_dtype)
         rfu, rfv = sxf - rx0, syf - ry0
         rwx, rwy = (1 - rfu, rfu), (1 - rfv, rfv)
-        wk_sum, d_num, v_num = None, None, None
+        wk_sum, d_num = None, None
         for (i, j), c in zip(_CORNERS, shifts, strict=True):
             g = key_src[c:].index_select(0, idx00).view(B, H, W)
             with torch.no_grad():
@@ -499,12 +511,6 @@ def _predict(
                 gv = d_src_pad[c:].index_select(0, idx00).view(B, H, W)
                 wk_sum = wk if wk_sum is None else wk_sum + wk
                 d_num = wk * gv if d_num is None else d_num + wk * gv
-            if var_pad is not None:
-                vk = var_pad[c:].index_select(0, idx00).view(B, H, W)
-                if fast:
-                    v_num = wk * vk if v_num is None else v_num.addcmul_(wk, vk)
-                else:
-                    v_num = wk * vk if v_num is None else v_num + wk * vk
         with torch.no_grad():
             ok_ref = landed & hz_ok & (wk_sum > 1e-3)
         wk_safe = wk_sum.clamp_min_(1e-3) if fast else wk_sum.clamp_min(1e-3)
@@ -517,13 +523,9 @@ def _predict(
         if fast:
             qz2.clamp_min_(_MIN_DEPTH_RATIO)
             est = torch.lerp(est, d_src.div_(qz2), ok_ref)
-            if est_var is not None:
-                est_var = torch.lerp(est_var, v_num.div_(wk_safe).div_(qz2.square_()), ok_ref)
         else:
             qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
             est = torch.lerp(est, d_src / qz2, ok_ref)
-            if est_var is not None:
-                est_var = torch.lerp(est_var, v_num / wk_safe / qz2.square(), ok_ref)
 
     landed_f = landed.to(dtype)
     hole4 = ~landed[:, None]
@@ -532,8 +534,9 @@ def _predict(
         est, _ = fill_holes_background(est, hole4)
     carried = (est_var + process_noise) if est_var is not None else torch.full_like(landed_f, process_noise)
     out_var = torch.lerp(torch.full_like(landed_f, hole_variance), carried, landed_f)[:, None]
-    confidence = (landed_f[:, None] / (1.0 + out_var))
+    confidence = landed_f[:, None] / (1.0 + out_var)
     return Prediction(est, out_var, hole4, ~hole4, confidence)
+
 
 class PredictDisparity(nn.Module):
     """Module form of :func:`predict_disparity`: stores the settings, ``forward`` calls the function.
