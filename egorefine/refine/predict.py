@@ -159,7 +159,10 @@ class _Padded:
     def crop(self, flat: torch.Tensor) -> torch.Tensor:
         return flat.view(self.B, self.Hp, self.Wp)[:, _PAD : _PAD + self.H, _PAD : _PAD + self.W]
 
-    def pad(self, x: torch.Tensor, fill: float) -> torch.Tensor:
+    def pad(self, x: torch.Tensor, fill: float | None) -> torch.Tensor:
+        """``x`` ``(B, H, W)`` in the layout, margins set to ``fill`` (None: the nearest border pixel's value)."""
+        if fill is None:
+            return F.pad(x, (_PAD, _PAD + 1, _PAD, _PAD + 1), mode="replicate").view(-1)
         return F.pad(x, (_PAD, _PAD + 1, _PAD, _PAD + 1), value=fill).view(-1)
 
 
@@ -198,16 +201,17 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     # running maximum of (column + 1) over non-hole pixels: its index is the nearest non-hole column on the
     # left (value 0: none); the same on the mirrored row gives the nearest one on the right
     left, left_at = (have_f * cols).cummax(dim=-1)
-    right, right_at = (have_f.flip(-1) * cols).cummax(dim=-1)
+    right, right_at = have_f.flip(-1).mul_(cols).cummax(dim=-1)
     # a missing side is pushed to +big, so the minimum ignores it
-    d_left = d.gather(-1, left_at).add_((left == 0).to(dtype), alpha=big)
-    d_right = d.flip(-1).gather(-1, right_at).add_((right == 0).to(dtype), alpha=big).flip(-1)
+    d_left = d.gather(-1, left_at).add_(left.eq_(0.0), alpha=big)
+    d_right = d.flip(-1).gather(-1, right_at).add_(right.eq_(0.0), alpha=big).flip(-1)
     row_fill = torch.minimum(d_left, d_right)
-    image_min = torch.add(d, 1.0 - have_f, alpha=big).flatten(1).amin(dim=1)
+    image_min = torch.where(have, d, big).flatten(1).amin(dim=1)
     empty = image_min >= big / 2  # (B,): no non-hole pixel at all
-    image_fill = (image_min * (~empty).to(dtype)).view(B, 1, 1).expand(B, H, W)
-    fill = torch.lerp(row_fill, image_fill, (row_fill >= big / 2).to(dtype))
-    return torch.lerp(fill, d, have_f)[:, None], empty
+    image_fill = torch.where(empty, 0.0, image_min).view(B, 1, 1)
+    # (the masks here are mostly uniform, where torch.where is as cheap as arithmetic)
+    fill = torch.where(row_fill < big / 2, row_fill, image_fill)
+    return torch.where(have, d, fill)[:, None], empty
 
 
 def predict_disparity(
@@ -428,8 +432,6 @@ def _predict(
         swap = (~consistent & (zt >= 0)).to(dtype)
         zbuf = zs.addcmul_(swap, zt.sub_(zs))  # nearest slack cover, or the nearest strict one where inconsistent
         landed = zbuf >= 0
-        # the source pixel nearest to it inside the image (its variance is carried in hard mode)
-        s_near = layout.index(sxf.clamp_(0, W - 1), syf.clamp_(0, H - 1)) if var_new is not None else None
         del key_new, swap, zt, sxf, syf
 
     splat = mode == "soft" or refine_iterations == 0
@@ -442,7 +444,8 @@ def _predict(
         if not fast:
             s_d = layout.pad(d_new, 0.0).index_select(0, s_idx).view(B, H, W)
         est = torch.lerp(zbuf, s_d, consistent_f)
-        est_var = None if var_new is None else layout.pad(var_new, 0.0).index_select(0, s_near).view(B, H, W)
+        # (replicated margins: a target falling just outside the source image takes the border pixel's)
+        est_var = None if var_new is None else layout.pad(var_new, None).index_select(0, s_idx).view(B, H, W)
     else:
         # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
         # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
@@ -475,7 +478,7 @@ def _predict(
         est = layout.crop(num) / wsum_safe
         est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
         del wsum, num, num_var
-    del s_idx, s_near, s_d, consistent, keys, tgt
+    del s_idx, s_d, consistent, keys, tgt
 
     # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
     if refine_iterations > 0:
