@@ -54,6 +54,11 @@ class EurocSequence:
     def __len__(self) -> int:
         return self.left.shape[0]
 
+    def __repr__(self) -> str:
+        T, _, H, W = self.left.shape
+        return (f"EurocSequence(T={T}, H={H}, W={W}, f={float(self.K[0, 0]):.2f}, baseline={self.baseline:.4f}, "
+                f"dtype={self.left.dtype}, device={self.left.device})")
+
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> EurocSequence:
         """A copy on ``device``; floating tensors also cast to ``dtype`` when given."""
         out = {}

@@ -239,3 +239,8 @@ def test_bad_arguments_raise() -> None:
         render_sequence(num_frames=0)
     with pytest.raises(ValueRangeError, match="baseline"):
         render_sequence(num_frames=1, height=8, width=8, baseline=-1.0)
+
+
+def test_repr_is_compact(seq: StereoSequence) -> None:
+    text = repr(seq)
+    assert text.startswith("StereoSequence(T=5, H=120, W=160") and len(text) < 200
