@@ -18,8 +18,11 @@ Forward splatting (:func:`predict_disparity`) has two modes:
   source pixel's square (so surfaces tile the target without cracks or fattening, up to a
   magnification of 2 per frame; a 0.1 px slack closes hairline cracks and a second, single-depth
   check per target keeps that slack from fattening foreground edges). Among the source pixels
-  covering a target, the nearest surface (largest ``d'``) wins; sources within
-  ``surface_tolerance`` of the winner are averaged with their bilinear weights.
+  covering a target, the nearest surface (largest ``d'``) wins. With refinement (the default) the
+  target starts from the ``d'`` of the source pixel it falls in when sent back at the winner's depth
+  (the z-buffer value where that pixel is not on the winning surface) and carries that source's
+  variance; with ``refine_iterations=0`` the sources within ``surface_tolerance`` of the winner are
+  averaged with their bilinear weights (values and variances).
 * ``"soft"``: differentiable softmax splatting. Each moved point spreads over the target pixels
   it covers among its four neighbours (the same coverage test, a mask without gradient) with
   bilinear weights ``b`` times ``exp((d' - m) / temperature)`` (``m`` the target's z-buffer value,
@@ -31,7 +34,16 @@ the target pixel centre. ``refine_iterations`` inverse-warp steps make it exact 
 surfaces: the target pixel is sent back into frame ``t-1`` with its current estimate, the source
 map is sampled there bilinearly (only among valid neighbours on the same surface), and the
 sampled point is moved forward again. On planes this converges to the exact value in one or two
-steps (tests/refine/test_predict.py measures it).
+steps (tests/refine/test_predict.py measures it); one step is the default (on the test scenes the
+10-frame error grows from 0.0441 to 0.0448 px with one step instead of two). Refinement refines
+disparity only; the variance stays the carried one.
+
+Speed: everything is written in pixel-homogeneous coordinates (one affine map per component over
+the grid), the coverage test is division-free, out-of-image corners land in the margin of a padded
+flat layout instead of being masked, the four corners share one index through shifted views, and
+masks are applied by arithmetic (``torch.where`` on noisy masks is slow on CPU). When no input
+needs a gradient, intermediate maps are updated in place; the two paths give the same numbers
+(tests check it). About 40 ms per 640x480 float32 call on one CPU thread (150 ms before).
 
 Known limit: a discrete map knows a depth edge only to within a pixel, so foreground edges alias by
 up to half a pixel per prediction and the error random-walks (and grows with magnification) when
@@ -259,7 +271,7 @@ def predict_disparity(
         hole_variance: px^2 given to hole pixels.
         fill_holes: fill holes by the background rule (else 0 there).
         temperature: px, softness of the softmax splatting (``"soft"`` only); smaller is harder.
-        refine_iterations: inverse-warp refinement steps (0 keeps the splatted values).
+        refine_iterations: inverse-warp refinement steps (0 keeps the splatted values; one is nearly exact).
         surface_tolerance: px; source disparities within this of the nearest one count as the same
             surface (z-buffer ties, refinement neighbours).
 
