@@ -381,6 +381,7 @@ def _predict(
     d_new = d * inv  # f B / Z' with Z' = Z q_z
     var_new = None if var is None else var * inv.square()  # first-order propagation: d' = d / q_z
     okf = src_ok.to(dtype)
+    not_ok = okf - 1.0  # -1 for invalid sources, 0 for valid ones
 
     # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point (_CORNERS), in a padded
     # flat layout: out-of-image corners land in margin cells that are never read back.
@@ -405,7 +406,7 @@ def _predict(
         ex0 = torch.addcmul(col_a * fud, col_b, fvd)  # -E_x at corner (0, 0)
         ey0 = torch.addcmul(row_a * fud, row_b, fvd)
         nz0 = torch.addcmul(inv - g20 * fud, g21.expand_as(fvd), fvd, value=-1.0)  # N_z at corner (0, 0)
-        thr0 = torch.addcmul(okf - 1.0, nz0, okf, value=slack)  # slack * N_z; -1 for invalid sources
+        thr0 = torch.addcmul(not_ok, nz0, okf, value=slack)  # slack * N_z; -1 for invalid sources
         del nz0
         z_slack, z_strict = layout.full(-big, d), layout.full(-big, d)
         d_det = d_new.detach()
@@ -413,11 +414,16 @@ def _predict(
         off, excess = torch.empty_like(d_det), torch.empty_like(d_det)
         k_strict = 1.0 - 0.5 / slack  # strict excess = slack excess + k_strict * threshold
         for (i, j), c in zip(_CORNERS, shifts, strict=True):
-            s = slack * (i * g20 + j * g21)  # the threshold's change from corner (0, 0)
-            torch.sub(col_a * i + col_b * j, ex0, out=off).abs_()
-            torch.maximum(off, torch.sub(row_a * i + row_b * j, ey0, out=excess).abs_(), out=off)  # |offset| N_z
-            torch.sub(off, thr0, out=excess).sub_(s)  # > 0: not covered
-            torch.add(excess, thr0, alpha=k_strict, out=off).add_(s * k_strict)  # > 0: not strictly covered
+            if i == j == 0:
+                torch.maximum(torch.abs(ex0, out=off), torch.abs(ey0, out=excess), out=off)  # |offset| N_z
+                torch.sub(off, thr0, out=excess)  # > 0: not covered
+                torch.add(excess, thr0, alpha=k_strict, out=off)  # > 0: not strictly covered
+            else:
+                s = slack * (i * g20 + j * g21)  # the threshold's change from corner (0, 0)
+                torch.sub(col_a * i + col_b * j, ex0, out=off).abs_()
+                torch.maximum(off, torch.sub(row_a * i + row_b * j, ey0, out=excess).abs_(), out=off)
+                torch.sub(off, thr0, out=excess).sub_(s)
+                torch.add(excess, thr0, alpha=k_strict, out=off).add_(s * k_strict)
             # key = d' where covered, far below any disparity where not (no branches, no masks)
             key = torch.add(d_det, excess.clamp_min_(0.0), alpha=-big, out=excess)
             z_slack[c:].scatter_reduce_(0, tgt, key.view(-1), "amax")
@@ -437,7 +443,7 @@ def _predict(
         zt = layout.crop(z_strict).clamp_min(-1.0)
         del z_slack, z_strict
         sxf, syf, _, hz_ok = _back_project(back, e, zs.clamp_min(0.0), True)
-        key_new = layout.pad(torch.add(d_det, okf - 1.0, alpha=big), -big)  # d' of valid sources, -big elsewhere
+        key_new = layout.pad(torch.add(d_det, not_ok, alpha=big), -big)  # d' of valid sources, -big elsewhere
         s_idx = layout.index(sxf.clamp_(-1, W).round_(), syf.clamp_(-1, H).round_())
         s_d = key_new.index_select(0, s_idx).view(B, H, W)  # d' of the source pixel it falls in
         consistent = ((s_d - zs).abs_() < surface_tolerance) & hz_ok
@@ -496,7 +502,7 @@ def _predict(
     if refine_iterations > 0:
         with torch.no_grad():
             # source disparity where valid, far below any disparity where not: one gather gives value and test
-            key_src = layout.pad(torch.add(d, okf - 1.0, alpha=big), -big)
+            key_src = layout.pad(torch.add(d, not_ok, alpha=big), -big)
             idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
         d_src_pad = key_src if fast else layout.pad(d, 0.0)
         a_z = per_batch(a[:, 2])
