@@ -377,9 +377,9 @@ def _predict(
     Px, Py, Pz = (_affine_map(A, k, xs, ys).addcmul_(d, per_batch(a[:, k])) for k in range(3))
     src_ok = src_ok & (Pz > _MIN_DEPTH_RATIO)
     inv = Pz.clamp_min(_MIN_DEPTH_RATIO).reciprocal()  # 1 / q_z, clamped first: points behind are masked out
-    u, v = Px * inv, Py * inv
+    u, v = (Px.mul_(inv), Py.mul_(inv)) if fast else (Px * inv, Py * inv)
     d_new = d * inv  # f B / Z' with Z' = Z q_z
-    var_new = None if var is None else var * inv.square()  # first-order propagation: d' = d / q_z
+    var_new = None if var is None else var * inv * inv  # first-order propagation: d' = d / q_z
     okf = src_ok.to(dtype)
     not_ok = okf - 1.0  # -1 for invalid sources, 0 for valid ones
 
