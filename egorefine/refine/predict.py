@@ -43,7 +43,7 @@ the grid), the coverage test is division-free, out-of-image corners land in the 
 flat layout instead of being masked, the four corners share one index through shifted views, and
 masks are applied by arithmetic (``torch.where`` on noisy masks is slow on CPU). When no input
 needs a gradient, intermediate maps are updated in place; the two paths give the same numbers
-(tests check it). About 40 ms per 640x480 float32 call on one CPU thread (150 ms before).
+(tests check it). About 40 ms CPU per 640x480 float32 call on one thread (about 135 ms before).
 
 Known limit: a discrete map knows a depth edge only to within a pixel, so foreground edges alias by
 up to half a pixel per prediction and the error random-walks (and grows with magnification) when
