@@ -1,0 +1,182 @@
+"""Exact integer fast path of the default matcher: SAD of the x-Sobel prefiltered images,
+box aggregation, winner-takes-all with sub-pixel fit and left-right / uniqueness checks.
+
+Used by :func:`egorefine.stereo.match_stereo` when no gradient is needed. The clipped x-Sobel
+responses are quantised to integers (``round(255 * scale * g)``, ``scale`` sub-grey-levels; for
+8-bit images this is exact as in OpenCV's StereoBM) so that the whole cost volume lives in
+int16: absolute differences and their box sums are exact integers, and every full-volume pass
+moves half the bytes of float32 (CPU int16 kernels are vectorised twice as wide). Only the
+winner's, its neighbours' and the runner-up's costs are converted to float.
+
+The disparity axis is reversed as in :mod:`egorefine.stereo.cost` (index ``j`` is disparity
+``max_disparity - 1 - j``): the shifted right image is then a positive-stride view.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from .cost import _shifted, prefilter_xsobel
+
+__all__ = ["int_scale", "match_sad_int"]
+
+_MAX_SCALE = 8
+# int16 box sum of a candidate that is out of view (or knocked out): above any real sum
+_INVALID = 32767
+_STRIP_ELEMENTS = 1 << 20  # int16 strip volume of ~2 MB
+_MIN_ROWS = 8  # at least this many output rows per strip (the 2r halo rows are computed twice)
+
+
+def int_scale(block_size: int, cap: float) -> int:
+    """Largest sub-grey-level scale (<= 8) whose box sums of ``|L - R|`` fit int16; 0 if none does."""
+    for scale in range(_MAX_SCALE, 0, -1):
+        if block_size * block_size * 2 * round(255.0 * scale * cap) < _INVALID:
+            return scale
+    return 0
+
+
+def _quantise(grey: torch.Tensor, cap: float, scale: int, pad: tuple[int, int, int, int]) -> torch.Tensor:
+    """Clipped x-Sobel as non-negative int16 ``round(255 * scale * (g + cap))`` in ``[0, 2 C]``, padded (replicate)."""
+    g = F.pad(prefilter_xsobel(grey, cap), pad, mode="replicate")
+    c = round(255.0 * scale * cap)
+    return (g * (255.0 * scale)).round_().clamp_(-c, c).add_(c).to(torch.int16).contiguous()
+
+
+def _box_rows(x: torch.Tensor, k: int, out: torch.Tensor) -> torch.Tensor:
+    """'valid' box sum of ``k`` rows (dim -2) of ``x`` ``(B, D, n, W)`` into ``out`` ``(B, D, n - k + 1, W)``.
+
+    One reduction over an overlapping strided view (window axis of row stride): torch vectorises it
+    along the contiguous W axis, about the price of one addition pass for any ``k``.
+    """
+    b, d, n, w = x.shape
+    sb, sd, sh, sw = x.stride()
+    windows = x.as_strided((b, d, n - k + 1, k, w), (sb, sd, sh, sh, sw), x.storage_offset())
+    return torch.sum(windows, dim=3, dtype=x.dtype, out=out)
+
+
+def _box_cols(x: torch.Tensor, k: int, out: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """'valid' box sum of an odd number ``k`` of columns (dim -1) of ``x`` into ``out`` (``pairs``: scratch, x's shape).
+
+    A window reduction whose window axis has stride 1 is not vectorised, so sums of adjacent pairs
+    ``p[x] = x[x] + x[x + 1]`` are formed first: ``box_k[x] = x[x] + sum_i p[x + 1 + 2 i]`` (window stride 2).
+    """
+    w_out = out.shape[-1]
+    if k == 1:
+        return out.copy_(x[..., :w_out])
+    half = (k - 1) // 2
+    p = torch.add(x[..., :-1], x[..., 1:], out=pairs[..., :-1])
+    b, d, n, _ = p.shape
+    sb, sd, sh, sw = p.stride()
+    windows = p.as_strided((b, d, n, half, w_out), (sb, sd, sh, 2 * sw, sw), p.storage_offset() + sw)
+    torch.sum(windows, dim=3, dtype=x.dtype, out=out)
+    return out.add_(x[..., :w_out])
+
+
+def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
+                  scale: int, lr_check: bool, lr_threshold: int, uniqueness_ratio: float,
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Integer WTA of the box-aggregated SAD cost.
+
+    Args:
+        left, right: ``(B, 1, H, W)`` grey float images (no gradient needed).
+        scale: quantisation scale from :func:`int_scale` (>= 1).
+
+    Returns:
+        ``(j, c_best, c_plus, c_minus, ok)`` each ``(B, 1, H, W)``: the reversed winner index (long);
+        the window-sum costs (float32, units of the float path: prefiltered grey levels in [0, 1]) of the
+        winner, of ``d + 1`` and of ``d - 1``; ``ok`` the bool result of the left-right and uniqueness
+        checks and of the winner being in view. Out-of-view neighbours have cost ``>= 1e6``.
+    """
+    b, _, h, w = left.shape
+    r = block // 2
+    num = max_d - min_d
+    bits = max(1, (num - 1).bit_length())
+    unit = 1.0 / (255.0 * scale)
+    lq = _quantise(left, cap, scale, (r, r, r, r))
+    rq = _quantise(right, cap, scale, (r + max_d, r, r, r))
+    dev = left.device
+    rows = max(_MIN_ROWS, _STRIP_ELEMENTS // max(1, b * num * (w + 2 * r)) - 2 * r)
+    rows = min(h, rows)
+    wp = w + 2 * r
+    raw = torch.empty((b, num, rows + 2 * r, wp), dtype=torch.int16, device=dev)
+    vert = torch.empty((b, num, rows, wp), dtype=torch.int16, device=dev)
+    pairs = torch.empty_like(vert)
+    # box sums with max_d extra columns of _INVALID for the right view's diagonal
+    # and lr guard planes of _INVALID on both ends of the disparity axis (candidates beyond the range)
+    guard = min(lr_threshold, num - 1) if lr_check else 0
+    box_buf = torch.full((b, num + 2 * guard, rows, w + max_d), _INVALID, dtype=torch.int16, device=dev)
+    # index codes min(cost - min, 1) * 2**bits + j: amin gives the lowest index of the minimum
+    # (``amin`` over dim 1 is vectorised; ``argmin`` there, and comparisons to bool, are several times slower)
+    code = torch.empty((b, num, rows, w), dtype=torch.int16, device=dev)
+    jvec = torch.arange(num, dtype=torch.int16, device=dev).view(1, num, 1, 1)
+    band = min(max_d, w)
+    d_col = (max_d - 1 - torch.arange(num, device=dev)).view(1, num, 1, 1)
+    out_of_view = torch.arange(band, device=dev).view(1, 1, 1, band) < d_col  # x - d < 0
+    x_idx = torch.arange(w, device=dev).view(1, 1, 1, w)
+    mask = (1 << bits) - 1
+    # flat offsets into box_buf (contiguous) of batch item, first real plane, row and column
+    sb, sj, sh, sw = box_buf.stride()
+    base = (torch.arange(b, device=dev).view(b, 1, 1, 1) * sb + guard * sj
+            + torch.arange(rows, device=dev).view(1, 1, rows, 1) * sh + x_idx * sw)
+
+    def argmin(vol: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Minimum over dim 1 and its lowest index."""
+        low = vol.amin(dim=1, keepdim=True)
+        c = torch.sub(vol, low, out=code[:, :, :n]).clamp_max_(1)
+        c = torch.add(jvec, c, alpha=1 << bits, out=c)
+        return low, (c.amin(dim=1, keepdim=True) & mask).long()
+
+    out_j, out_c, out_p, out_m, out_ok = [], [], [], [], []
+    for y0 in range(0, h, rows):
+        y1 = min(h, y0 + rows)
+        n = y1 - y0
+        lv = lq[..., y0 : y1 + 2 * r, :]
+        rv = _shifted(rq, y0, n + 2 * r, wp, num)
+        rw = raw[:, :, : n + 2 * r]
+        torch.sub(lv, rv, out=rw).abs_()
+        vsum = _box_rows(rw, block, vert[:, :, :n])
+        box_all = box_buf[:, guard : guard + num, :n]
+        hsum = _box_cols(vsum, block, box_all[..., :w], pairs[:, :, :n])
+        hsum[..., :band].masked_fill_(out_of_view, _INVALID)
+        best, j = argmin(hsum, n)
+        jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
+        c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
+        ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
+        if min_d > 0:
+            ok &= j < num - 1
+        if lr_check:
+            # left-right check (right view from the same volume: cost_right(xr, d) = cost_left(xr + d, d)):
+            # the right view's minimum at xr = x - d must be reached by a disparity within lr_threshold of d
+            diag = box_all.as_strided((b, num, n, w), (sb, sj - sw, sh, sw),
+                                      box_all.storage_offset() + (max_d - 1) * sw)
+            right_min = diag.amin(dim=1, keepdim=True)
+            xr = (x_idx - (max_d - 1 - j)).clamp_min(0)  # x - d (>= 0 where ok)
+            # cost_right(x - d, d') = cost_left(x - d + d', d') lies at plane j' = j + dj, column x - dj;
+            # d' outside the range reads a guard plane. Indices stay in the buffer (dj = -guard needs j >= 0)
+            flat = base[:, :, :n] + j * sj
+            near = torch.take(box_buf, flat)
+            for dj in range(-guard, guard + 1):
+                if dj:
+                    near = torch.minimum(near, torch.take(box_buf, flat + dj * (sj - sw)))
+            ok &= near <= right_min.gather(3, xr)
+        if uniqueness_ratio > 0:
+            inv = torch.full_like(best, _INVALID)
+            for nb in (jm, j, jp):
+                hsum.scatter_(1, nb, inv)
+            second = hsum.amin(dim=1, keepdim=True).float()
+            ok &= second > best.float() * (1 + uniqueness_ratio)
+        out_j.append(j)
+        out_c.append(best)
+        out_p.append(c_plus)
+        out_m.append(c_minus)
+        out_ok.append(ok)
+
+    def cost(parts: list[torch.Tensor]) -> torch.Tensor:
+        c = torch.cat(parts, dim=2)
+        # out-of-view entries carry _INVALID: report them as >= INVALID_COST like the float path
+        c = c.to(left.dtype)
+        return torch.where(c >= _INVALID, torch.full_like(c, 1.0e6), c * unit)
+
+    j = torch.cat(out_j, dim=2)
+    return j, cost(out_c), cost(out_p), cost(out_m), torch.cat(out_ok, dim=2)
