@@ -47,7 +47,7 @@ SEQUENCES = [
 
 
 def _u8(img: torch.Tensor) -> np.ndarray:
-    return (img[0].clamp(0, 1) * 255).round().byte().numpy()
+    return (img[0, 0].clamp(0, 1) * 255).round().byte().numpy()
 
 
 def opencv_matchers(max_disparity: int, block: int = 9) -> dict:
