@@ -17,13 +17,17 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .cost import _shifted, prefilter_xsobel
+from .cost import _shifted, box_mean_same, prefilter_xsobel
 
-__all__ = ["int_scale", "match_sad_int"]
+__all__ = ["int_scale", "match_sad_int", "INVALID_VARIANCE"]
 
 _MAX_SCALE = 8
 # int16 box sum of a candidate that is out of view (or knocked out): above any real sum
 _INVALID = 32767
+# the matcher's constants (egorefine.stereo.matching imports this module)
+# Variance (px^2) reported where the matcher gives no measurement.
+INVALID_VARIANCE = 1.0e4
+_QUANTISATION_VARIANCE = 1.0 / 12.0
 _STRIP_ELEMENTS = 1 << 20  # int16 strip volume of ~2 MB
 _MIN_ROWS = 8  # at least this many output rows per strip (the 2r halo rows are computed twice)
 
@@ -36,11 +40,13 @@ def int_scale(block_size: int, cap: float) -> int:
     return 0
 
 
-def _quantise(grey: torch.Tensor, cap: float, scale: int, pad: tuple[int, int, int, int]) -> torch.Tensor:
-    """Clipped x-Sobel as non-negative int16 ``round(255 * scale * (g + cap))`` in ``[0, 2 C]``, padded (replicate)."""
-    g = F.pad(prefilter_xsobel(grey, cap), pad, mode="replicate")
+def _quantise(grey: torch.Tensor, cap: float, scale: int, pad: tuple[int, int, int, int]
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Clipped x-Sobel ``g`` and, padded (replicate), as non-negative int16 ``round(255 * scale * (g + cap))``."""
+    g = prefilter_xsobel(grey, cap)
     c = round(255.0 * scale * cap)
-    return (g * (255.0 * scale)).round_().clamp_(-c, c).add_(c).to(torch.int16).contiguous()
+    q = (F.pad(g, pad, mode="replicate") * (255.0 * scale)).round_().clamp_(-c, c).add_(c)
+    return g, q.to(torch.int16).contiguous()
 
 
 def _box_rows(x: torch.Tensor, k: int, out: torch.Tensor) -> torch.Tensor:
@@ -74,27 +80,31 @@ def _box_cols(x: torch.Tensor, k: int, out: torch.Tensor, pairs: torch.Tensor) -
 
 
 def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
-                  scale: int, lr_check: bool, lr_threshold: int, uniqueness_ratio: float,
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Integer WTA of the box-aggregated SAD cost.
+                  scale: int, opts: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Disparity, validity and variance of the box-aggregated SAD matcher, computed in integers.
+
+    Same decisions and formulas as ``egorefine.stereo.matching._select`` on the float volume
+    (up to its float rounding; a right-view tie within ``lr_threshold`` of the left winner passes
+    the left-right check here).
 
     Args:
         left, right: ``(B, 1, H, W)`` grey float images (no gradient needed).
+        max_d, min_d, block, cap: search range, odd window size, prefilter clip level.
         scale: quantisation scale from :func:`int_scale` (>= 1).
+        opts: the matcher's settings (``subpixel``, ``subpixel_fit``, ``lr_check``, ``lr_threshold``,
+            ``uniqueness_ratio``, ``texture_threshold``, ``cost_floor``).
 
     Returns:
-        ``(j, c_best, c_plus, c_minus, ok)`` each ``(B, 1, H, W)``: the reversed winner index (long);
-        the window-sum costs (float32, units of the float path: prefiltered grey levels in [0, 1]) of the
-        winner, of ``d + 1`` and of ``d - 1``; ``ok`` the bool result of the left-right and uniqueness
-        checks and of the winner being in view. Out-of-view neighbours have cost ``>= 1e6``.
+        ``(disparity, valid, variance)`` each ``(B, 1, H, W)`` (0 and ``INVALID_VARIANCE`` where invalid).
     """
+    lr_check, lr_threshold, uniqueness_ratio = opts["lr_check"], opts["lr_threshold"], opts["uniqueness_ratio"]
     b, _, h, w = left.shape
     r = block // 2
     num = max_d - min_d
     bits = max(1, (num - 1).bit_length())
     unit = 1.0 / (255.0 * scale)
-    lq = _quantise(left, cap, scale, (r, r, r, r))
-    rq = _quantise(right, cap, scale, (r + max_d, r, r, r))
+    gl, lq = _quantise(left, cap, scale, (r, r, r, r))
+    rq = _quantise(right, cap, scale, (r + max_d, r, r, r))[1]
     dev = left.device
     rows = max(_MIN_ROWS, _STRIP_ELEMENTS // max(1, b * num * (w + 2 * r)) - 2 * r)
     rows = min(h, rows)
@@ -127,7 +137,7 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         c = torch.add(jvec, c, alpha=1 << bits, out=c)
         return low, (c.amin(dim=1, keepdim=True) & mask).long()
 
-    out_j, out_c, out_p, out_m, out_ok = [], [], [], [], []
+    out_j, out_c, out_p, out_m, out_ok, out_in = [], [], [], [], [], []
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
         n = y1 - y0
@@ -143,6 +153,7 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
         c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
         ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
+        out_in.append(ok & (j < num - 1) & (c_minus < _INVALID))  # interior minimum: sub-pixel fit defined
         if min_d > 0:
             ok &= j < num - 1
         if lr_check:
@@ -172,11 +183,27 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         out_m.append(c_minus)
         out_ok.append(ok)
 
-    def cost(parts: list[torch.Tensor]) -> torch.Tensor:
-        c = torch.cat(parts, dim=2)
-        # out-of-view entries carry _INVALID: report them as >= INVALID_COST like the float path
-        c = c.to(left.dtype)
-        return torch.where(c >= _INVALID, torch.full_like(c, 1.0e6), c * unit)
-
+    # per-pixel tail on (B, 1, H, W) tensors, with 0/1 float factors instead of torch.where
+    # (where and masked_fill on bool masks are ~20x slower than arithmetic on CPU)
+    dtype = left.dtype
+    unit = 1.0 / (255.0 * scale)
+    area = float(block * block)
     j = torch.cat(out_j, dim=2)
-    return j, cost(out_c), cost(out_p), cost(out_m), torch.cat(out_ok, dim=2)
+    c0, c_plus, c_minus = (torch.cat(p, dim=2).to(dtype).mul_(unit) for p in (out_c, out_p, out_m))
+    textured = box_mean_same(gl.abs(), block) >= opts["texture_threshold"]
+    valid = torch.cat(out_ok, dim=2) & textured
+    inner = torch.cat(out_in, dim=2).view(torch.uint8).to(dtype)
+    keep = valid.view(torch.uint8).to(dtype)
+    curvature = c_minus - 2 * c0 + c_plus
+    eps = torch.finfo(dtype).eps * 16 * area
+    if opts["subpixel_fit"] == "parabola":
+        denom = 2 * curvature
+    else:  # equiangular (V-shaped) fit
+        denom = 2 * (torch.maximum(c_minus, c_plus) - c0)
+    disparity = (max_d - 1 - j).to(dtype)
+    if opts["subpixel"]:
+        disparity += ((c_minus - c_plus) / denom.clamp_min(eps)).clamp_(-0.5, 0.5).mul_(inner)
+    variance = ((c0 + opts["cost_floor"] * area) / (curvature.clamp_min(0) + eps)).square_().mul_(0.25)
+    variance = variance.add_(_QUANTISATION_VARIANCE).clamp_max_(INVALID_VARIANCE)
+    variance = variance.mul_(inner).add_(1 - inner)  # 1 px^2 where the minimum is not interior
+    return disparity.mul_(keep), valid, variance.mul_(keep).add_((1 - keep) * INVALID_VARIANCE)

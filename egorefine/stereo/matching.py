@@ -16,16 +16,13 @@ from torch import nn
 
 from ..core import DTypeError, ValueRangeError, check_choice, check_finite, check_float, check_same_device, check_shape
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume, to_gray
-from .fast import int_scale, match_sad_int
+from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
 
 __all__ = ["StereoOutput", "block_matching", "match_stereo", "BlockMatching", "INVALID_VARIANCE"]
 
 AGGREGATIONS = ("box", "sgm")
 SUBPIXEL_FITS = ("parabola", "equiangular")
-# Variance (px^2) reported where the matcher gives no measurement.
-INVALID_VARIANCE = 1.0e4
-_QUANTISATION_VARIANCE = 1.0 / 12.0
 # SGM penalties per cost, in that cost's units (window-mean SAD of the prefiltered image,
 # 1 - ZNCC, mean Hamming distance).
 _SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (0.5, 3.0)}
@@ -201,27 +198,6 @@ def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, to
     return disparity, valid, variance
 
 
-def _finish(j: torch.Tensor, c0: torch.Tensor, c_plus: torch.Tensor, c_minus: torch.Tensor, ok: torch.Tensor,
-            num: int, max_d: int, opts: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Sub-pixel disparity and variance of the integer fast path (the formulas of :func:`_select`)."""
-    scale = opts["scale"]
-    d_int = (max_d - 1 - j).to(c0.dtype)
-    interior = (j > 0) & (j < num - 1) & (c_plus < INVALID_COST / 2) & (c_minus < INVALID_COST / 2)
-    curvature = c_minus - 2 * c0 + c_plus
-    eps = torch.finfo(c0.dtype).eps * 16 * scale
-    if opts["subpixel_fit"] == "parabola":
-        denom = 2 * curvature
-    else:
-        denom = 2 * (torch.maximum(c_minus, c_plus) - c0)
-    offset = ((c_minus - c_plus) / denom.clamp_min(eps)).clamp(-0.5, 0.5)
-    offset = torch.where(interior, offset, torch.zeros_like(offset))
-    disparity = d_int + offset if opts["subpixel"] else d_int
-    kd = curvature.clamp_min(0)
-    variance = _QUANTISATION_VARIANCE + 0.25 * ((c0 + opts["cost_floor"] * scale) / (kd + eps)) ** 2
-    variance = torch.where(interior, variance.clamp_max(INVALID_VARIANCE), torch.ones_like(variance))
-    return disparity, ok, variance
-
-
 def match_stereo(
     left: torch.Tensor,
     right: torch.Tensor,
@@ -283,7 +259,6 @@ def match_stereo(
     _check_inputs(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel_fit, sgm_paths,
                   temperature, differentiable, soft_radius, census_window)
     grey_l, grey_r = to_gray(left), to_gray(right)
-    feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
     b, _, h, w = grey_l.shape
     num = max_disparity - min_disparity
     opts = {
@@ -294,21 +269,21 @@ def match_stereo(
         "scale": float(block_size * block_size),
         "min_disparity": min_disparity,
     }
-    # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
-    texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
-    textured = texture >= texture_threshold
-
-    parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     scale = int_scale(block_size, prefilter_cap) if cost == "sad" and prefilter else 0
     needs_grad = torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)
     if _INTEGER_PATH and aggregation == "box" and scale > 0 and not (differentiable or needs_grad) and num <= 1 << 14:
         # exact int16 fast path (the decisions of the float path below, without its float rounding;
         # a right-view tie within lr_threshold of the left winner passes the left-right check)
-        j, c0, c_plus, c_minus, ok = match_sad_int(grey_l.detach(), grey_r.detach(), max_disparity, min_disparity,
-                                                   block_size, prefilter_cap, scale, lr_check, lr_threshold,
-                                                   uniqueness_ratio)
-        parts.append(_finish(j, c0, c_plus, c_minus, ok, num, max_disparity, opts))
-    elif aggregation == "sgm":
+        return StereoOutput(*match_sad_int(grey_l.detach(), grey_r.detach(), max_disparity, min_disparity,
+                                           block_size, prefilter_cap, scale,
+                                           {**opts, "texture_threshold": texture_threshold}))
+    feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
+    # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
+    texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
+    textured = texture >= texture_threshold
+
+    parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    if aggregation == "sgm":
         vol = strip_volume(feat, 0, h, min_disparity)
         p1, p2 = _SGM_PENALTIES[cost]
         p1 = p1 if sgm_p1 is None else sgm_p1
