@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .cost import _shifted, box_mean_same, prefilter_xsobel
+from .cost import _shifted, prefilter_xsobel
 
 __all__ = ["int_scale", "match_sad_int", "INVALID_VARIANCE"]
 
@@ -103,7 +103,7 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     num = max_d - min_d
     bits = max(1, (num - 1).bit_length())
     unit = 1.0 / (255.0 * scale)
-    gl, lq = _quantise(left, cap, scale, (r, r, r, r))
+    lq = _quantise(left, cap, scale, (r, r, r, r))[1]
     rq = _quantise(right, cap, scale, (r + max_d, r, r, r))[1]
     dev = left.device
     rows = max(_MIN_ROWS, _STRIP_ELEMENTS // max(1, b * num * (w + 2 * r)) - 2 * r)
@@ -122,7 +122,8 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     jvec = torch.arange(num, dtype=torch.int16, device=dev).view(1, num, 1, 1)
     band = min(max_d, w)
     d_col = (max_d - 1 - torch.arange(num, device=dev)).view(1, num, 1, 1)
-    out_of_view = torch.arange(band, device=dev).view(1, 1, 1, band) < d_col  # x - d < 0
+    # _INVALID where x - d < 0, else 0: applied with maximum (int16, vectorised; masked_fill is not)
+    out_of_view = ((torch.arange(band, device=dev).view(1, 1, 1, band) < d_col) * _INVALID).to(torch.int16)
     x_idx = torch.arange(w, device=dev).view(1, 1, 1, w)
     mask = (1 << bits) - 1
     # flat offsets into box_buf (contiguous) of batch item, first real plane, row and column
@@ -137,7 +138,25 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         c = torch.add(jvec, c, alpha=1 << bits, out=c)
         return low, (c.amin(dim=1, keepdim=True) & mask).long()
 
-    out_j, out_c, out_p, out_m, out_ok, out_in = [], [], [], [], [], []
+    dtype = left.dtype
+    unit = 1.0 / (255.0 * scale)
+    area = float(block * block)
+    disparity = torch.empty((b, 1, h, w), dtype=dtype, device=dev)
+    variance = torch.empty_like(disparity)
+    valid = torch.empty((b, 1, h, w), dtype=torch.bool, device=dev)
+    # texture check in integers: window sum of |x-Sobel| (quantised, replicate borders) against the
+    # threshold on the window mean; as exact as the costs
+    c_level = round(255.0 * scale * cap)
+    t_need = opts["texture_threshold"] * area * 255.0 * scale
+    t_abs = torch.empty((b, 1, rows + 2 * r, wp), dtype=torch.int16, device=dev)
+    t_vert = torch.empty((b, 1, rows, wp), dtype=torch.int16, device=dev)
+    t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
+
+    def texture_ok(y0: int, n: int) -> torch.Tensor:
+        a = torch.sub(lq[..., y0 : y0 + n + 2 * r, :], c_level, out=t_abs[:, :, : n + 2 * r]).abs_()
+        v = _box_rows(a, block, t_vert[:, :, :n])
+        return _box_cols(v, block, t_sum[:, :, :n], t_pairs[:, :, :n]) >= t_need
+
     for y0 in range(0, h, rows):
         y1 = min(h, y0 + rows)
         n = y1 - y0
@@ -148,12 +167,12 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         vsum = _box_rows(rw, block, vert[:, :, :n])
         box_all = box_buf[:, guard : guard + num, :n]
         hsum = _box_cols(vsum, block, box_all[..., :w], pairs[:, :, :n])
-        hsum[..., :band].masked_fill_(out_of_view, _INVALID)
+        torch.maximum(hsum[..., :band], out_of_view, out=hsum[..., :band])
         best, j = argmin(hsum, n)
         jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
         c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
         ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
-        out_in.append(ok & (j < num - 1) & (c_minus < _INVALID))  # interior minimum: sub-pixel fit defined
+        inner = ok & (j < num - 1) & (c_minus < _INVALID)  # interior minimum: the sub-pixel fit is defined
         if min_d > 0:
             ok &= j < num - 1
         if lr_check:
@@ -177,33 +196,37 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
                 hsum.scatter_(1, nb, inv)
             second = hsum.amin(dim=1, keepdim=True).float()
             ok &= second > best.float() * (1 + uniqueness_ratio)
-        out_j.append(j)
-        out_c.append(best)
-        out_p.append(c_plus)
-        out_m.append(c_minus)
-        out_ok.append(ok)
+        ok &= texture_ok(y0, n)
+        valid[..., y0:y1, :] = ok
+        _tail(j, best, c_plus, c_minus, ok, inner, max_d, unit, area, opts,
+              (disparity[..., y0:y1, :], variance[..., y0:y1, :]))
 
-    # per-pixel tail on (B, 1, H, W) tensors, with 0/1 float factors instead of torch.where
-    # (where and masked_fill on bool masks are ~20x slower than arithmetic on CPU)
-    dtype = left.dtype
-    unit = 1.0 / (255.0 * scale)
-    area = float(block * block)
-    j = torch.cat(out_j, dim=2)
-    c0, c_plus, c_minus = (torch.cat(p, dim=2).to(dtype).mul_(unit) for p in (out_c, out_p, out_m))
-    textured = box_mean_same(gl.abs(), block) >= opts["texture_threshold"]
-    valid = torch.cat(out_ok, dim=2) & textured
-    inner = torch.cat(out_in, dim=2).view(torch.uint8).to(dtype)
+    return disparity, valid, variance
+
+
+def _tail(j: torch.Tensor, best: torch.Tensor, c_plus: torch.Tensor, c_minus: torch.Tensor, valid: torch.Tensor,
+          inner: torch.Tensor, max_d: int, unit: float, area: float, opts: dict, out: tuple[torch.Tensor, ...]) -> None:
+    """Sub-pixel fit and variance of one strip (the formulas of ``matching._select``), written into ``out``.
+
+    0/1 float factors replace torch.where (where and masked_fill on bool masks are ~20x slower than
+    arithmetic on CPU); strip-sized temporaries stay in cache.
+    """
+    disparity, variance = out
+    dtype = disparity.dtype
+    c0, cp, cm = (c.to(dtype).mul_(unit) for c in (best, c_plus, c_minus))
+    inner = inner.view(torch.uint8).to(dtype)
     keep = valid.view(torch.uint8).to(dtype)
-    curvature = c_minus - 2 * c0 + c_plus
+    curvature = cm - 2 * c0 + cp
     eps = torch.finfo(dtype).eps * 16 * area
     if opts["subpixel_fit"] == "parabola":
         denom = 2 * curvature
     else:  # equiangular (V-shaped) fit
-        denom = 2 * (torch.maximum(c_minus, c_plus) - c0)
-    disparity = (max_d - 1 - j).to(dtype)
+        denom = 2 * (torch.maximum(cm, cp) - c0)
+    torch.sub(max_d - 1, j, out=disparity)
     if opts["subpixel"]:
-        disparity += ((c_minus - c_plus) / denom.clamp_min(eps)).clamp_(-0.5, 0.5).mul_(inner)
-    variance = ((c0 + opts["cost_floor"] * area) / (curvature.clamp_min(0) + eps)).square_().mul_(0.25)
-    variance = variance.add_(_QUANTISATION_VARIANCE).clamp_max_(INVALID_VARIANCE)
-    variance = variance.mul_(inner).add_(1 - inner)  # 1 px^2 where the minimum is not interior
-    return disparity.mul_(keep), valid, variance.mul_(keep).add_((1 - keep) * INVALID_VARIANCE)
+        disparity += ((cm - cp) / denom.clamp_min(eps)).clamp_(-0.5, 0.5).mul_(inner)
+    disparity.mul_(keep)
+    var = ((c0 + opts["cost_floor"] * area) / (curvature.clamp_min_(0) + eps)).square_().mul_(0.25)
+    var = var.add_(_QUANTISATION_VARIANCE).clamp_max_(INVALID_VARIANCE).sub_(1).mul_(inner).add_(1)
+    # INVALID_VARIANCE where invalid (0/1 factors: exact)
+    torch.mul(var, keep, out=variance).add_(keep.neg_().add_(1).mul_(INVALID_VARIANCE))
