@@ -177,6 +177,7 @@ def test_strips_do_not_change_the_result(pair, monkeypatch):
     import egorefine.stereo.matching as m
 
     left, right, _ = pair
+    monkeypatch.setattr(m, "_INTEGER_PATH", False)  # the float path (tests/stereo/test_fast.py: integer path)
     d_ref, v_ref = block_matching(left, right, 16)
     monkeypatch.setattr(m, "_STRIP_ELEMENTS", 1)  # one row per strip
     d_rows, v_rows = block_matching(left, right, 16)
