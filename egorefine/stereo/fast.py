@@ -31,6 +31,7 @@ _INVALID = 32767
 INVALID_VARIANCE = 1.0e4
 _QUANTISATION_VARIANCE = 1.0 / 12.0
 _STRIP_ELEMENTS = 1 << 21  # int16 strip volume of ~4 MB (measured best of 2**19..2**23 at 640x480)
+_CHUNK_ELEMENTS = 1 << 18  # int16 raw-cost chunk of ~0.5 MB
 _MIN_ROWS = 8  # at least this many output rows per strip (the 2r halo rows are computed twice)
 
 
@@ -111,8 +112,12 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     rows = max(_MIN_ROWS, _STRIP_ELEMENTS // max(1, b * num * (w + 2 * r)) - 2 * r)
     rows = min(h, rows)
     wp = w + 2 * r
-    raw = torch.empty((b, num, rows + 2 * r, wp), dtype=torch.int16, device=dev)
-    vert = torch.empty((b, num, rows, wp), dtype=torch.int16, device=dev)
+    # raw costs and their vertical sums are built for a chunk of disparities at a time (cache-sized);
+    # only the box sums of the strip hold every disparity
+    chunk = max(1, min(num, _CHUNK_ELEMENTS // max(1, b * (rows + 2 * r) * wp)))
+    raw = torch.empty((b, chunk, rows + 2 * r, wp), dtype=torch.int16, device=dev)
+    vert = torch.empty((b, chunk, rows, wp), dtype=torch.int16, device=dev)
+    code_buf = torch.empty((b, num, rows, w), dtype=torch.int16, device=dev)
     # box sums with max_d extra columns of _INVALID for the right view's diagonal
     # and lr guard planes of _INVALID on both ends of the disparity axis (candidates beyond the range)
     guard = min(lr_threshold, num - 1) if lr_check else 0
@@ -167,13 +172,15 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         n = y1 - y0
         lv = lq[..., y0 : y1 + 2 * r, :]
         rv = _shifted(rq, y0, n + 2 * r, wp, num)
-        rw = raw[:, :, : n + 2 * r]
-        torch.sub(lv, rv, out=rw).abs_()
-        vsum = _box_rows(rw, block, vert[:, :, :n])
         box_all = box_buf[:, guard : guard + num, :n]
-        hsum = _box_cols(vsum, block, box_all[..., :w], reuse(raw, (b, num, n, wp)))
+        for c0 in range(0, num, chunk):
+            m = min(num, c0 + chunk) - c0
+            rw = torch.sub(lv, rv[:, c0 : c0 + m], out=reuse(raw, (b, m, n + 2 * r, wp))).abs_()
+            vsum = _box_rows(rw, block, reuse(vert, (b, m, n, wp)))
+            _box_cols(vsum, block, box_all[:, c0 : c0 + m, :, :w], reuse(raw, (b, m, n, wp)))
+        hsum = box_all[..., :w]
         torch.maximum(hsum[..., :band], out_of_view, out=hsum[..., :band])
-        best, j = argmin(hsum, reuse(vert, (b, num, n, w)))
+        best, j = argmin(hsum, code_buf[:, :, :n])
         jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
         c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
         ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
