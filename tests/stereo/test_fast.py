@@ -93,7 +93,8 @@ def test_strips_and_batch_do_not_change_the_result(pair, monkeypatch):
     left, right, _ = pair
     ref = match_stereo(left, right, 16)
     monkeypatch.setattr(fast, "_STRIP_ELEMENTS", 1)  # _MIN_ROWS rows per strip
-    monkeypatch.setattr(fast, "_CHUNK_ELEMENTS", 3 * 80 * 20)  # 3 disparities per raw-cost chunk (16 = 5 * 3 + 1)
+    # 3 disparities per raw-cost chunk (B=2, 8 + 8 halo rows, 80 + 8 columns; 16 = 5 * 3 + 1)
+    monkeypatch.setattr(fast, "_CHUNK_ELEMENTS", 3 * 2 * 16 * 88)
     rows = match_stereo(left, right, 16)
     assert torch.equal(ref.valid, rows.valid) and torch.equal(ref.disparity, rows.disparity)
     one = match_stereo(left[1:], right[1:], 16)
