@@ -26,12 +26,14 @@ __all__ = ["int_scale", "match_sad_int", "INVALID_VARIANCE"]
 _MAX_SCALE = 8
 # int16 box sum of a candidate that is out of view (or knocked out): above any real sum
 _INVALID = 32767
-# the matcher's constants (egorefine.stereo.matching imports this module)
-# Variance (px^2) reported where the matcher gives no measurement.
+# the matcher's variance constants (px^2; egorefine.stereo.matching imports them from here):
+# where the matcher gives no measurement, and the floor of an integer-rounded match
 INVALID_VARIANCE = 1.0e4
 _QUANTISATION_VARIANCE = 1.0 / 12.0
-_STRIP_ELEMENTS = 1 << 21  # int16 strip volume of ~4 MB (measured best of 2**19..2**23 at 640x480)
-_CHUNK_ELEMENTS = 1 << 18  # int16 raw-cost chunk of ~0.5 MB
+# box sums of a strip: ~4 MB of int16; raw costs of a chunk of disparities: ~0.5 MB (measured best of
+# 2**19..2**23 and 2**16..2**19 at 640x480 and 64 / 128 disparities)
+_STRIP_ELEMENTS = 1 << 21
+_CHUNK_ELEMENTS = 1 << 18
 _MIN_ROWS = 8  # at least this many output rows per strip (the 2r halo rows are computed twice)
 
 
@@ -105,7 +107,6 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     r = block // 2
     num = max_d - min_d
     bits = max(1, (num - 1).bit_length())
-    unit = 1.0 / (255.0 * scale)
     lq = _quantise(left, cap, scale, (r, r, r, r))[1]
     rq = _quantise(right, cap, scale, (r + max_d, r, r, r))[1]
     dev = left.device
