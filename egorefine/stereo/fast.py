@@ -15,6 +15,7 @@ The disparity axis is reversed as in :mod:`egorefine.stereo.cost` (index ``j`` i
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import torch.nn.functional as F
@@ -116,13 +117,10 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     # raw costs and their vertical sums are built for a chunk of disparities at a time (cache-sized);
     # only the box sums of the strip hold every disparity
     chunk = max(1, min(num, _CHUNK_ELEMENTS // max(1, b * (rows + 2 * r) * wp)))
-    raw = torch.empty((b, chunk, rows + 2 * r, wp), dtype=torch.int16, device=dev)
-    vert = torch.empty((b, chunk, rows, wp), dtype=torch.int16, device=dev)
-    code_buf = torch.empty((b, num, rows, w), dtype=torch.int16, device=dev)
     # box sums with max_d extra columns of _INVALID for the right view's diagonal
     # and lr guard planes of _INVALID on both ends of the disparity axis (candidates beyond the range)
     guard = min(lr_threshold, num - 1) if lr_check else 0
-    box_buf = torch.full((b, num + 2 * guard, rows, w + max_d), _INVALID, dtype=torch.int16, device=dev)
+    box_shape = (b, num + 2 * guard, rows, w + max_d)
     # index codes min(cost - min, 1) * 2**bits + j: amin gives the lowest index of the minimum
     # (``amin`` over dim 1 is vectorised; ``argmin`` there, and comparisons to bool, are several times slower)
     jvec = torch.arange(num, dtype=torch.int16, device=dev).view(1, num, 1, 1)
@@ -133,7 +131,9 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     x_idx = torch.arange(w, device=dev).view(1, 1, 1, w)
     mask = (1 << bits) - 1
     # flat offsets into box_buf (contiguous) of batch item, first real plane, row and column
-    sb, sj, sh, sw = box_buf.stride()
+    sw, sh = 1, w + max_d
+    sj = rows * sh
+    sb = (num + 2 * guard) * sj
     base = (torch.arange(b, device=dev).view(b, 1, 1, 1) * sb + guard * sj
             + torch.arange(rows, device=dev).view(1, 1, rows, 1) * sh + x_idx * sw)
 
@@ -159,61 +159,85 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     # threshold on the window mean; as exact as the costs
     c_level = round(255.0 * scale * cap)
     t_need = opts["texture_threshold"] * area * 255.0 * scale
-    t_abs = torch.empty((b, 1, rows + 2 * r, wp), dtype=torch.int16, device=dev)
-    t_vert = torch.empty((b, 1, rows, wp), dtype=torch.int16, device=dev)
-    t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
+    def run(starts: list[int]) -> None:
+        """Match the strips starting at rows ``starts`` with this call's own buffers."""
+        raw = torch.empty((b, chunk, rows + 2 * r, wp), dtype=torch.int16, device=dev)
+        vert = torch.empty((b, chunk, rows, wp), dtype=torch.int16, device=dev)
+        code_buf = torch.empty((b, num, rows, w), dtype=torch.int16, device=dev)
+        box_buf = torch.full(box_shape, _INVALID, dtype=torch.int16, device=dev)
+        t_abs = torch.empty((b, 1, rows + 2 * r, wp), dtype=torch.int16, device=dev)
+        t_vert = torch.empty((b, 1, rows, wp), dtype=torch.int16, device=dev)
+        t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
 
-    def texture_ok(y0: int, n: int) -> torch.Tensor:
-        a = torch.sub(lq[..., y0 : y0 + n + 2 * r, :], c_level, out=t_abs[:, :, : n + 2 * r]).abs_()
-        v = _box_rows(a, block, t_vert[:, :, :n])
-        return _box_cols(v, block, t_sum[:, :, :n], t_pairs[:, :, :n]) >= t_need
+        def texture_ok(y0: int, n: int) -> torch.Tensor:
+            a = torch.sub(lq[..., y0 : y0 + n + 2 * r, :], c_level, out=t_abs[:, :, : n + 2 * r]).abs_()
+            v = _box_rows(a, block, t_vert[:, :, :n])
+            return _box_cols(v, block, t_sum[:, :, :n], t_pairs[:, :, :n]) >= t_need
 
-    for y0 in range(0, h, rows):
-        y1 = min(h, y0 + rows)
-        n = y1 - y0
-        lv = lq[..., y0 : y1 + 2 * r, :]
-        rv = _shifted(rq, y0, n + 2 * r, wp, num)
-        box_all = box_buf[:, guard : guard + num, :n]
-        for c0 in range(0, num, chunk):
-            m = min(num, c0 + chunk) - c0
-            rw = torch.sub(lv, rv[:, c0 : c0 + m], out=reuse(raw, (b, m, n + 2 * r, wp))).abs_()
-            vsum = _box_rows(rw, block, reuse(vert, (b, m, n, wp)))
-            _box_cols(vsum, block, box_all[:, c0 : c0 + m, :, :w], reuse(raw, (b, m, n, wp)))
-        hsum = box_all[..., :w]
-        torch.maximum(hsum[..., :band], out_of_view, out=hsum[..., :band])
-        best, j = argmin(hsum, code_buf[:, :, :n])
-        jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
-        c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
-        ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
-        inner = ok & (j < num - 1) & (c_minus < _INVALID)  # interior minimum: the sub-pixel fit is defined
-        if min_d > 0:
-            ok &= j < num - 1
-        if lr_check:
-            # left-right check (right view from the same volume: cost_right(xr, d) = cost_left(xr + d, d)):
-            # the right view's minimum at xr = x - d must be reached by a disparity within lr_threshold of d
-            diag = box_all.as_strided((b, num, n, w), (sb, sj - sw, sh, sw),
-                                      box_all.storage_offset() + (max_d - 1) * sw)
-            right_min = diag.amin(dim=1, keepdim=True)
-            xr = (x_idx - (max_d - 1 - j)).clamp_min(0)  # x - d (>= 0 where ok)
-            # cost_right(x - d, d') = cost_left(x - d + d', d') lies at plane j' = j + dj, column x - dj;
-            # d' outside the range reads a guard plane. Indices stay in the buffer (dj = -guard needs j >= 0)
-            flat = base[:, :, :n] + j * sj
-            near = torch.take(box_buf, flat)
-            for dj in range(-guard, guard + 1):
-                if dj:
-                    near = torch.minimum(near, torch.take(box_buf, flat + dj * (sj - sw)))
-            ok &= near <= right_min.gather(3, xr)
-        if uniqueness_ratio > 0:
-            inv = torch.full_like(best, _INVALID)
-            for nb in (jm, j, jp):
-                hsum.scatter_(1, nb, inv)
-            second = hsum.amin(dim=1, keepdim=True).float()
-            ok &= second > best.float() * (1 + uniqueness_ratio)
-        ok &= texture_ok(y0, n)
-        valid[..., y0:y1, :] = ok
-        _tail(j, best, c_plus, c_minus, ok, inner, max_d, unit, area, opts,
-              (disparity[..., y0:y1, :], variance[..., y0:y1, :]))
+        for y0 in starts:
+            y1 = min(h, y0 + rows)
+            n = y1 - y0
+            lv = lq[..., y0 : y1 + 2 * r, :]
+            rv = _shifted(rq, y0, n + 2 * r, wp, num)
+            box_all = box_buf[:, guard : guard + num, :n]
+            for c0 in range(0, num, chunk):
+                m = min(num, c0 + chunk) - c0
+                rw = torch.sub(lv, rv[:, c0 : c0 + m], out=reuse(raw, (b, m, n + 2 * r, wp))).abs_()
+                vsum = _box_rows(rw, block, reuse(vert, (b, m, n, wp)))
+                _box_cols(vsum, block, box_all[:, c0 : c0 + m, :, :w], reuse(raw, (b, m, n, wp)))
+            hsum = box_all[..., :w]
+            torch.maximum(hsum[..., :band], out_of_view, out=hsum[..., :band])
+            best, j = argmin(hsum, code_buf[:, :, :n])
+            jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
+            c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
+            ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
+            inner = ok & (j < num - 1) & (c_minus < _INVALID)  # interior minimum: the sub-pixel fit is defined
+            if min_d > 0:
+                ok &= j < num - 1
+            if lr_check:
+                # left-right check (right view from the same volume: cost_right(xr, d) = cost_left(xr + d, d)):
+                # the right view's minimum at xr = x - d must be reached by a disparity within lr_threshold of d
+                diag = box_all.as_strided((b, num, n, w), (sb, sj - sw, sh, sw),
+                                          box_all.storage_offset() + (max_d - 1) * sw)
+                right_min = diag.amin(dim=1, keepdim=True)
+                xr = (x_idx - (max_d - 1 - j)).clamp_min(0)  # x - d (>= 0 where ok)
+                # cost_right(x - d, d') = cost_left(x - d + d', d') lies at plane j' = j + dj, column x - dj;
+                # d' outside the range reads a guard plane. Indices stay in the buffer (dj = -guard needs j >= 0)
+                flat = base[:, :, :n] + j * sj
+                near = torch.take(box_buf, flat)
+                for dj in range(-guard, guard + 1):
+                    if dj:
+                        near = torch.minimum(near, torch.take(box_buf, flat + dj * (sj - sw)))
+                ok &= near <= right_min.gather(3, xr)
+            if uniqueness_ratio > 0:
+                inv = torch.full_like(best, _INVALID)
+                for nb in (jm, j, jp):
+                    hsum.scatter_(1, nb, inv)
+                second = hsum.amin(dim=1, keepdim=True).float()
+                ok &= second > best.float() * (1 + uniqueness_ratio)
+            ok &= texture_ok(y0, n)
+            valid[..., y0:y1, :] = ok
+            _tail(j, best, c_plus, c_minus, ok, inner, max_d, unit, area, opts,
+                  (disparity[..., y0:y1, :], variance[..., y0:y1, :]))
 
+    starts = list(range(0, h, rows))
+    threads = torch.get_num_threads()
+    workers = min(threads, len(starts))
+    if dev.type != "cpu" or workers < 2:
+        run(starts)
+        return disparity, valid, variance
+    # CPU with several threads: strips in parallel, each worker single-threaded. Intra-op threading of
+    # the many mid-sized strip ops costs more in thread wake-ups than it gains (measured 2x slower with
+    # 2 threads); the ops release the GIL, so Python threads run strips concurrently.
+    def worker(k: int) -> None:
+        torch.set_num_threads(1)
+        run(starts[k::workers])
+
+    try:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(worker, range(workers)))
+    finally:
+        torch.set_num_threads(threads)
     return disparity, valid, variance
 
 

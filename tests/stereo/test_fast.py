@@ -114,3 +114,18 @@ def test_large_block_falls_back_to_the_float_path():
     out = match_stereo(left, right, 12, block_size=25)  # int_scale(25) == 0
     assert out.valid.float().mean() > 0.2
     assert (out.disparity[out.valid] - 5.0).abs().max() < 0.5
+
+
+def test_threaded_strips_equal_serial(pair, monkeypatch):
+    # with several torch threads the strips run in a thread pool (one torch thread each)
+    left, right, _ = pair
+    monkeypatch.setattr(fast, "_STRIP_ELEMENTS", 1)  # several strips per worker
+    ref = match_stereo(left, right, 16)  # the stereo tests run torch single-threaded (conftest)
+    torch.set_num_threads(2)
+    try:
+        out = match_stereo(left, right, 16)
+        assert torch.get_num_threads() == 2  # restored after the pool
+    finally:
+        torch.set_num_threads(1)
+    assert torch.equal(ref.valid, out.valid) and torch.equal(ref.disparity, out.disparity)
+    assert torch.equal(ref.variance, out.variance)
