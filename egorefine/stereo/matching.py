@@ -3,7 +3,9 @@
 
 The box-aggregated path works on strips of rows so that memory stays at a few
 ``(B, D, h, W)`` strips whatever the image size; SGM needs the whole volume (its vertical
-paths cross every row) and holds about four ``(B, D, H, W)`` volumes.
+paths cross every row) and holds about four ``(B, D, H, W)`` volumes. The default matcher
+(SAD on the x-Sobel prefiltered images, box aggregation) runs in exact int16 arithmetic
+(:mod:`egorefine.stereo.fast`) whenever no gradient is needed.
 """
 
 from __future__ import annotations
