@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 import re
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ..core import ValueRangeError
+from ._sequence import SequenceMixin
 from .folder import read_grey
 
 __all__ = ["EurocSequence", "load_euroc", "read_euroc_sensor"]
@@ -33,7 +34,7 @@ _TIME_TOLERANCE_NS = 1_000_000
 
 
 @dataclass
-class EurocSequence:
+class EurocSequence(SequenceMixin):
     """A (rectified) EuRoC stereo clip.
 
     Attributes:
@@ -51,23 +52,10 @@ class EurocSequence:
     poses: torch.Tensor
     timestamps: torch.Tensor
 
-    def __len__(self) -> int:
-        return self.left.shape[0]
-
     def __repr__(self) -> str:
         T, _, H, W = self.left.shape
         return (f"EurocSequence(T={T}, H={H}, W={W}, f={float(self.K[0, 0]):.2f}, baseline={self.baseline:.4f}, "
                 f"dtype={self.left.dtype}, device={self.left.device})")
-
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> EurocSequence:
-        """A copy on ``device``; floating tensors also cast to ``dtype`` when given."""
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                v = v.to(device=device, dtype=dtype if (dtype is not None and v.is_floating_point()) else None)
-            out[f.name] = v
-        return replace(self, **out)
 
     @property
     def motions(self) -> torch.Tensor:

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from ..core import ValueRangeError, check_choice
+from ._sequence import SequenceMixin
 from ._texture import make_texture
 
 __all__ = ["RigPreset", "StereoSequence", "PRESETS", "SCENES", "MOTIONS", "render_sequence"]
@@ -81,7 +82,7 @@ MOTIONS: dict[str, str] = {
 
 
 @dataclass
-class StereoSequence:
+class StereoSequence(SequenceMixin):
     """A rendered (or loaded) rectified stereo sequence with ground truth.
 
     Attributes:
@@ -107,23 +108,10 @@ class StereoSequence:
     baseline: float
     fps: float
 
-    def __len__(self) -> int:
-        return self.left.shape[0]
-
     def __repr__(self) -> str:
         T, _, H, W = self.left.shape
         return (f"StereoSequence(T={T}, H={H}, W={W}, f={float(self.K[0, 0]):.2f}, baseline={self.baseline:g}, "
                 f"fps={self.fps:g}, dtype={self.left.dtype}, device={self.left.device})")
-
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> StereoSequence:
-        """A copy on ``device``; floating tensors also cast to ``dtype`` when given."""
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                v = v.to(device=device, dtype=dtype if (dtype is not None and v.is_floating_point()) else None)
-            out[f.name] = v
-        return replace(self, **out)
 
     def batch(self, t: int | slice) -> dict[str, torch.Tensor]:
         """Frame(s) ``t`` batched: images ``(B,1,H,W)``, ``K`` ``(B,3,3)``, ``baseline`` ``(B,)``.
