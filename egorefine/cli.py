@@ -107,7 +107,7 @@ def _folder(args: argparse.Namespace) -> int:
         out, state = refiner(left, right, K, baseline, state)
         disp = torch.where(out.valid, out.disparity, torch.zeros_like(out.disparity))
         write_pfm(out_dir / f"{t:06d}.pfm", disp[0, 0])
-        print(f"\rframe {t + 1}/{len(frames)} stereo={out.stereo_ran}", end="", file=sys.stderr, flush=True)
+        print(f"\rframe {t + 1}/{len(frames)} stereo={out.stereo_ran!s:5}", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
     return 0
 
