@@ -62,7 +62,7 @@ def _demo(args: argparse.Namespace) -> int:
         res = refine_sequence(seq.left, seq.right, K, baseline, verify_every=args.verify_every, fusion=fusion,
                               motion_method=motion, max_disparity=args.max_disparity, show_progress=True)
         ms = (time.perf_counter() - t0) * 1e3 / T
-        name = f"refined, {fusion} ({motion} motion), verify every {args.verify_every}"
+        name = f"{fusion} mode ({motion} motion), verify every {args.verify_every}"
         results[name] = (score(res.disparity[:, 0], res.valid[:, 0], True), ms, int(res.stereo_ran.sum()),
                          res.disparity[:, 0])
 
@@ -76,7 +76,7 @@ def _demo(args: argparse.Namespace) -> int:
     last = T - 1
     curves = {"ground truth": seq.disparity[last, 0]}
     for k, (_, _, _, disp) in results.items():
-        curves[k.split(",")[0] + ("" if "refined" in k else k.split(",")[1])] = disp[last, 0]
+        curves[k.split(" (")[0].replace("stereo per frame,", "stereo,")] = disp[last, 0]
     levels = {k: distinct_levels(v[row][gt_mask[last, 0, row]]) for k, v in curves.items()}
     print("distinct disparity levels along row", row, ":", ", ".join(f"{k}: {v}" for k, v in levels.items()))
     try:
