@@ -35,6 +35,7 @@ bench: $(VENV)/.installed-dev
 	$(PY) benchmarks/stereo.py
 	$(PY) benchmarks/ego_motion.py
 	$(PY) benchmarks/refine.py
+	$(PY) benchmarks/euroc_static.py
 
 clean:
 	rm -rf $(VENV) results .pytest_cache

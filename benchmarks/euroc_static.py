@@ -1,0 +1,72 @@
+"""No-drift check on real stereo video: the EuRoC V1_01 clip (../shared/data), where the vehicle is almost still.
+
+For paper and Kalman fusion (verify every 5, exact motion) it prints the largest per-frame median
+|d_t - d_0| over stable pixels (valid on every frame, > 1 px on the first), the largest per-frame motion
+error against the ground truth, and ms per frame. tests/refine/test_refiner_euroc.py asserts the same
+quantities for the default (paper) mode.
+
+    python benchmarks/euroc_static.py [--root ../shared/data/euroc_v1_01_micro]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import ROOT, markdown_table, set_threads, write_json  # noqa: E402
+
+from egorefine.data import load_euroc  # noqa: E402
+from egorefine.metrics import rotation_error_deg, translation_error  # noqa: E402
+from egorefine.refine import EgoMotionRefiner  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--root", default=str(ROOT.parent / "shared" / "data" / "euroc_v1_01_micro"))
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    set_threads(args.threads)
+    seq = load_euroc(args.root)
+    K, b = seq.K[None], torch.tensor([seq.baseline])
+    gt = torch.linalg.inv(seq.poses[1:]) @ seq.poses[:-1]
+    rows, results = [], {}
+    for fusion in ("paper", "kalman"):
+        refiner = EgoMotionRefiner(max_disparity=64, verify_every=5, fusion=fusion)
+        state, disparity, valid, motion = None, [], [], []
+        t0 = time.perf_counter()
+        for t in range(len(seq.left)):
+            out, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
+            disparity.append(out.disparity)
+            valid.append(out.valid)
+            motion.append(out.motion)
+        ms = (time.perf_counter() - t0) * 1e3 / len(seq.left)
+        d, v, m = torch.cat(disparity), torch.cat(valid), torch.cat(motion)
+        stable = v.all(0) & (d[0] > 1.0)
+        drift = torch.stack([(d[t] - d[0]).abs()[stable].median() for t in range(len(d))])
+        res = {
+            "max_median_drift_px": float(drift.max()),
+            "last_median_drift_px": float(drift[-1]),
+            "stable_fraction": float(stable.float().mean()),
+            "max_translation_error_mm": float(translation_error(m[1:], gt).max() * 1e3),
+            "max_rotation_error_deg": float(rotation_error_deg(m[1:], gt).max()),
+            "ms_per_frame": ms,
+        }
+        results[fusion] = res
+        rows.append([fusion, res["max_median_drift_px"], res["last_median_drift_px"], res["stable_fraction"],
+                     res["max_translation_error_mm"], res["max_rotation_error_deg"], ms])
+    header = ["fusion", "max median drift px", "final median drift px", "stable share", "max t err mm",
+              "max rot err deg", "ms/frame"]
+    table = markdown_table(header, rows)
+    H, W = seq.left.shape[-2:]
+    print(f"EuRoC V1_01, {len(seq.left)} frames {W}x{H}, verify every 5, exact motion")
+    print(table)
+    write_json("euroc_static", {"frames": len(seq.left), "results": results})
+
+
+if __name__ == "__main__":
+    main()
