@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, markdown_table, set_threads, write_json  # noqa: E402
+from _common import ROOT, markdown_table, set_threads, update_readme, write_json  # noqa: E402
 
 from egorefine.data import load_euroc  # noqa: E402
 from egorefine.metrics import rotation_error_deg, translation_error  # noqa: E402
@@ -66,6 +66,7 @@ def main() -> None:
     print(f"EuRoC V1_01, {len(seq.left)} frames {W}x{H}, verify every 5, exact motion")
     print(table)
     write_json("euroc_static", {"frames": len(seq.left), "results": results})
+    update_readme("euroc_static", f"{len(seq.left)} frames, {W}x{H}, verify every 5, exact motion.\n\n{table}")
 
 
 if __name__ == "__main__":
