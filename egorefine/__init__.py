@@ -8,7 +8,7 @@ every 3-D point, and correction against fresh stereo every i-th frame.
 >>> refiner = egorefine.EgoMotionRefiner(max_disparity=64, verify_every=5, fusion="paper")
 """
 
-from . import core, data, features, geometry, metrics, motion, refine, stereo
+from . import core, data, features, geometry, metrics, motion, refine, stereo, viz
 from .refine import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
 __version__ = "0.1.0"
@@ -22,6 +22,7 @@ __all__ = [
     "motion",
     "refine",
     "stereo",
+    "viz",
     "EgoMotionRefiner",
     "RefinerOutput",
     "RefinerState",

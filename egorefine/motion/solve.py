@@ -144,6 +144,10 @@ def _check_inputs(
             raise ValueRangeError("weights: every entry must be finite and >= 0")
 
 
+# Largest disparity difference (px) among the 4 pixels a feature's depth is interpolated from.
+_MAX_DISPARITY_SPREAD = 1.0
+
+
 def _disparity_at(
     points: torch.Tensor, disparity: torch.Tensor, valid: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -151,7 +155,8 @@ def _disparity_at(
 
     A map is sampled bilinearly (integer coordinates are pixel centres); a sample counts as
     usable only if the point lies inside the image and all 4 pixels it interpolates are finite,
-    positive and valid. Only those 4 pixels per point are read (gathered), never the whole
+    positive and valid and differ by at most ``_MAX_DISPARITY_SPREAD`` (no depth edge inside
+    the stencil). Only those 4 pixels per point are read (gathered), never the whole
     map, so the cost does not grow with the image.
     """
     if disparity.dim() == 2:
@@ -174,7 +179,10 @@ def _disparity_at(
     top = v[..., 0] + fx * (v[..., 1] - v[..., 0])
     bottom = v[..., 2] + fx * (v[..., 3] - v[..., 2])
     sampled = top + fy * (bottom - top)
-    usable = inside & good.all(-1)
+    # Corners often sit on depth edges: 4 valid neighbours can still straddle a foreground and a background
+    # surface, and their blend is a depth that exists nowhere. Such samples are not used.
+    straddles = (v.amax(-1) - v.amin(-1)) > _MAX_DISPARITY_SPREAD
+    usable = inside & good.all(-1) & ~straddles
     return torch.where(usable, sampled, torch.zeros_like(sampled)), usable
 
 

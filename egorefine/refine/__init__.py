@@ -1,13 +1,16 @@
 """Predict (eq. 1 + splatting), correct (paper gate/gain or Kalman) and the refiner loop."""
 
-from .correct import Correction, correct_disparity
-from .predict import Prediction, predict_disparity
+from .correct import CorrectDisparity, Correction, correct_disparity
+from .predict import PredictDisparity, Prediction, fill_holes_background, predict_disparity
 from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
 __all__ = [
+    "CorrectDisparity",
     "Correction",
     "correct_disparity",
+    "PredictDisparity",
     "Prediction",
+    "fill_holes_background",
     "predict_disparity",
     "EgoMotionRefiner",
     "RefinerOutput",
