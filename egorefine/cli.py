@@ -64,7 +64,8 @@ def _demo(args: argparse.Namespace) -> int:
                               motion_method=motion, subpixel=subpixel, max_disparity=args.max_disparity,
                               show_progress=True)
         ms = (time.perf_counter() - t0) * 1e3 / T
-        name = f"{fusion} mode ({motion} motion), verify every {args.verify_every}"
+        stereo = "integer" if not subpixel else "sub-pixel"
+        name = f"{fusion} mode ({stereo} stereo, {motion} motion), verify every {args.verify_every}"
         results[name] = (score(res.disparity[:, 0], res.valid[:, 0], True), ms, int(res.stereo_ran.sum()),
                          res.disparity[:, 0])
 
