@@ -25,6 +25,9 @@ __all__ = [
     "temporal_consistency",
     "translation_error",
     "rotation_error_deg",
+    "compose_motions",
+    "relative_pose_error",
+    "absolute_trajectory_error",
 ]
 
 
@@ -174,3 +177,56 @@ def rotation_error_deg(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     vee = torch.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], dim=-1)
     # atan2(sin, cos) rather than acos(cos): acos loses angles below ~0.02 degrees in float32.
     return torch.rad2deg(torch.atan2(0.5 * vee.norm(dim=-1), cos))
+
+
+def compose_motions(motions: torch.Tensor) -> torch.Tensor:
+    """Poses ``camera_0_T_camera_t`` ``(T, 4, 4)`` from per-frame motions ``camera_t_T_camera_{t-1}`` ``(T, 4, 4)``.
+
+    ``motions[0]`` is ignored (the first frame is the origin), as the refiner returns the identity there.
+
+    >>> step = torch.eye(4).repeat(3, 1, 1); step[:, 2, 3] = -0.1  # static points come 0.1 m closer
+    >>> compose_motions(step)[:, 2, 3]  # so the camera moved 0.1 m forward each frame
+    tensor([0.0000, 0.1000, 0.2000])
+    """
+    check_shape(motions, ["T", "4", "4"], "motions")
+    poses = [torch.eye(4, dtype=motions.dtype, device=motions.device)]
+    for motion in motions[1:]:  # a loop over time: each pose needs the previous one
+        poses.append(poses[-1] @ torch.linalg.inv(motion))
+    return torch.stack(poses)
+
+
+def relative_pose_error(est: torch.Tensor, gt: torch.Tensor) -> dict[str, float]:
+    """RPE over consecutive frames of per-frame motions ``(T, 4, 4)`` (``t = 0`` skipped).
+
+    Returns:
+        ``{"translation_rmse_m", "translation_median_m", "rotation_mean_deg", "rotation_median_deg"}``.
+    """
+    check_shape(est, ["T", "4", "4"], "est")
+    check_shape(gt, ["T", "4", "4"], "gt", {"T": est.shape[0]})
+    t_err = translation_error(est[1:], gt[1:])
+    r_err = rotation_error_deg(est[1:], gt[1:])
+    return {
+        "translation_rmse_m": float(t_err.pow(2).mean().sqrt()),
+        "translation_median_m": float(t_err.median()),
+        "rotation_mean_deg": float(r_err.mean()),
+        "rotation_median_deg": float(r_err.median()),
+    }
+
+
+def absolute_trajectory_error(est_poses: torch.Tensor, gt_poses: torch.Tensor, align: bool = True) -> float:
+    """ATE: RMSE (metres) of camera positions ``(T, 4, 4)`` after a rigid alignment of ``est`` onto ``gt``.
+
+    The alignment is the least-squares rotation and translation (Kabsch/Umeyama without scale: a stereo
+    rig measures metric scale, so scale is not fitted away). ``align=False`` compares the raw positions.
+    """
+    check_shape(est_poses, ["T", "4", "4"], "est_poses")
+    check_shape(gt_poses, ["T", "4", "4"], "gt_poses", {"T": est_poses.shape[0]})
+    p, q = est_poses[:, :3, 3].double(), gt_poses[:, :3, 3].double()
+    if align:
+        mp, mq = p.mean(0), q.mean(0)
+        U, _, Vh = torch.linalg.svd((q - mq).T @ (p - mp))
+        # Reflection guard: force det(R) = +1.
+        D = torch.diag(torch.tensor([1.0, 1.0, float(torch.sign(torch.linalg.det(U @ Vh)))], dtype=p.dtype))
+        R = U @ D @ Vh
+        p = (p - mp) @ R.T + mq
+    return float((p - q).pow(2).sum(-1).mean().sqrt())

@@ -6,13 +6,16 @@ import torch
 from egorefine.core import ShapeError
 from egorefine.geometry import se3_exp
 from egorefine.metrics import (
+    absolute_trajectory_error,
     bad_pixel_rate,
+    compose_motions,
     d1_error,
     density,
     distinct_levels,
     epe,
     evaluate_disparity,
     median_error,
+    relative_pose_error,
     rmse,
     rotation_error_deg,
     temporal_consistency,
@@ -69,3 +72,23 @@ def test_motion_errors():
     # Small angles survive float32 (acos of the trace would return 0 below ~0.02 degrees).
     c = se3_exp(torch.tensor([[0.0, 0.0, 0.0, math.radians(0.003), 0.0, 0.0]]))
     assert rotation_error_deg(a, c @ a).item() == pytest.approx(0.003, rel=0.05)
+
+
+def test_trajectory_metrics():
+    g = torch.Generator().manual_seed(2)
+    twists = torch.randn(6, 6, dtype=torch.float64, generator=g) * torch.tensor([0.05, 0.05, 0.1, 0.01, 0.01, 0.01])
+    motions = se3_exp(twists)
+    motions[0] = torch.eye(4, dtype=torch.float64)
+    poses = compose_motions(motions)
+    # Composing back: camera_t_T_camera_{t-1} = inv(pose_t) @ pose_{t-1}.
+    torch.testing.assert_close(torch.linalg.inv(poses[1:]) @ poses[:-1], motions[1:])
+    assert relative_pose_error(motions, motions)["translation_rmse_m"] == 0.0
+    # A whole trajectory moved rigidly is perfect after alignment, not before.
+    world = se3_exp(torch.tensor([[0.3, -0.2, 1.0, 0.2, -0.1, 0.4]], dtype=torch.float64))[0]
+    moved = world @ poses
+    assert absolute_trajectory_error(moved, poses) < 1e-9
+    assert absolute_trajectory_error(moved, poses, align=False) > 0.5
+    # A known offset of 3 cm on every position is exactly the RMSE without alignment.
+    shifted = poses.clone()
+    shifted[:, 0, 3] += 0.03
+    assert absolute_trajectory_error(shifted, poses, align=False) == pytest.approx(0.03)

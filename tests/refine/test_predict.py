@@ -162,6 +162,13 @@ def test_sideways_translation_shifts_by_disparity_and_opens_border_holes():
     assert pred.hole[..., -2:].all() and not pred.hole[..., :-2].any()
     assert torch.allclose(pred.disparity, d, atol=1e-12)  # holes filled from the row: also 4
     assert (pred.confidence[pred.hole] == 0).all() and (pred.variance[pred.hole] == 100.0).all()
+    # The plane's values cannot show the shift; a marked (invalid) source column can: column 6 lands on 4.
+    valid = torch.ones_like(d, dtype=torch.bool)
+    valid[..., 6] = False
+    marked = predict_disparity(d, _translation(tx=-0.05), K, torch.tensor([0.1]), valid=valid)
+    hole_columns = marked.hole[0, 0].all(0).nonzero().flatten().tolist()
+    W = d.shape[-1]
+    assert hole_columns == [4, W - 2, W - 1]
 
 
 @pytest.mark.parametrize("mode", ["hard", "soft"])
