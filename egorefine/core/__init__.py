@@ -10,6 +10,7 @@ from .check import (
     check_shape,
 )
 from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
+from .image import to_grey
 from .numerics import eps_like, safe_div
 
 __all__ = [
@@ -28,4 +29,5 @@ __all__ = [
     "ValueRangeError",
     "eps_like",
     "safe_div",
+    "to_grey",
 ]

@@ -20,7 +20,6 @@ import math
 
 import torch
 import torch.nn.functional as F
-from kornia.color import rgb_to_grayscale
 from kornia.feature import gftt_response, harris_response
 
 from ..core import (
@@ -32,6 +31,7 @@ from ..core import (
     check_same_device,
     check_shape,
     eps_like,
+    to_grey,
 )
 
 __all__ = ["detect", "Detector", "replenish", "corner_response"]
@@ -39,9 +39,6 @@ __all__ = ["detect", "Detector", "replenish", "corner_response"]
 _RESPONSES = ("gftt", "harris")
 _SUBPIXEL = ("gradient", "quadratic", "none")
 
-
-def _to_gray(image: torch.Tensor) -> torch.Tensor:
-    return rgb_to_grayscale(image) if image.shape[1] == 3 else image
 
 
 def corner_response(image: torch.Tensor, response: str = "gftt", k: float = 0.04) -> torch.Tensor:
@@ -65,7 +62,7 @@ def corner_response(image: torch.Tensor, response: str = "gftt", k: float = 0.04
     """
     check_image(image, "image")
     check_choice(response, _RESPONSES, "response")
-    gray = _to_gray(image)
+    gray = to_grey(image)
     if response == "gftt":
         return gftt_response(gray)
     r = harris_response(gray, k=k)
@@ -311,7 +308,7 @@ def _detect(
     iy = torch.where(valid, iy, torch.zeros_like(iy)).clamp(0, h - 1)
     kp = torch.stack([ix, iy], dim=-1).to(resp.dtype)
     if subpixel == "gradient":
-        kp = kp + _gradient_offsets(_to_gray(image), ix, iy)
+        kp = kp + _gradient_offsets(to_grey(image), ix, iy)
     elif subpixel == "quadratic":
         kp = kp + _subpixel_offsets(resp[:, 0], ix, iy)
     weights = valid.to(resp.dtype)

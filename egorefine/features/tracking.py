@@ -33,7 +33,6 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.color import rgb_to_grayscale
 
 from ..core import (
     ValueRangeError,
@@ -43,6 +42,7 @@ from ..core import (
     check_same_device,
     check_shape,
     eps_like,
+    to_grey,
 )
 
 __all__ = ["track", "Tracker", "TrackOutput", "build_pyramid"]
@@ -96,7 +96,7 @@ def build_pyramid(image: torch.Tensor, levels: int) -> list[torch.Tensor]:
     >>> [p.shape[-1] for p in build_pyramid(torch.rand(1, 3, 32, 40), 3)]
     [40, 20, 10]
     """
-    gray = rgb_to_grayscale(image) if image.shape[1] == 3 else image
+    gray = to_grey(image)
     pyr = [gray]
     for _ in range(levels - 1):
         pyr.append(_pyrdown(pyr[-1]))

@@ -22,7 +22,6 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.color import rgb_to_grayscale
 from torch import nn
 
 from ..core import (
@@ -34,6 +33,7 @@ from ..core import (
     check_image,
     check_positive,
     check_shape,
+    to_grey,
 )
 from ..features import replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
@@ -104,9 +104,6 @@ class RefinerOutput(NamedTuple):
     motion_ok: torch.Tensor
     num_tracks: torch.Tensor
 
-
-def _grey(image: torch.Tensor) -> torch.Tensor:
-    return rgb_to_grayscale(image) if image.shape[1] == 3 else image
 
 
 def _confidence(valid: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -302,7 +299,7 @@ class EgoMotionRefiner(nn.Module):
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
         return match_stereo(
-            left, _grey(right), self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
+            left, to_grey(right), self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
         )
 
     # -- one frame ---------------------------------------------------------------------------------------------
@@ -327,7 +324,7 @@ class EgoMotionRefiner(nn.Module):
             ``(RefinerOutput, RefinerState)``.
         """
         self._check_inputs(left, right, K, baseline, state)
-        grey = _grey(left)
+        grey = to_grey(left)
         B = grey.shape[0]
         eye = torch.eye(4, device=grey.device, dtype=grey.dtype).expand(B, 4, 4)
         if state is None:

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from kornia.color import rgb_to_grayscale
+
+from ..core import to_grey
 
 __all__ = ["prefilter_xsobel", "census_transform", "cost_volume", "COSTS", "INVALID_COST"]
 
@@ -24,10 +25,6 @@ COSTS = ("sad", "zncc", "census")
 INVALID_COST = 1.0e6
 _CENSUS_WINDOWS = (3, 5, 7)
 
-
-def to_gray(image: torch.Tensor) -> torch.Tensor:
-    """``(B, 1|3, H, W)`` -> ``(B, 1, H, W)`` grey (kornia's luma weights for colour)."""
-    return rgb_to_grayscale(image) if image.shape[1] == 3 else image
 
 
 def prefilter_xsobel(image: torch.Tensor, cap: float = 31.0 / 255.0) -> torch.Tensor:
@@ -241,7 +238,7 @@ def cost_volume(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min
     >>> cost_volume(torch.rand(1, 1, 8, 12), torch.rand(1, 1, 8, 12), 4, block_size=3).shape
     torch.Size([1, 4, 8, 12])
     """
-    feat = _Features(to_gray(left), to_gray(right), cost, block_size, max_disparity, census_window, prefilter,
+    feat = _Features(to_grey(left), to_grey(right), cost, block_size, max_disparity, census_window, prefilter,
                      prefilter_cap)
     vol = strip_volume(feat, 0, feat.height, min_disparity).flip(1)
     return vol / (block_size * block_size)

@@ -16,8 +16,17 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from ..core import DTypeError, ValueRangeError, check_choice, check_finite, check_float, check_same_device, check_shape
-from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume, to_gray
+from ..core import (
+    DTypeError,
+    ValueRangeError,
+    check_choice,
+    check_finite,
+    check_float,
+    check_same_device,
+    check_shape,
+    to_grey,
+)
+from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
 
@@ -260,7 +269,7 @@ def match_stereo(
     """
     _check_inputs(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel_fit, sgm_paths,
                   temperature, differentiable, soft_radius, census_window)
-    grey_l, grey_r = to_gray(left), to_gray(right)
+    grey_l, grey_r = to_grey(left), to_grey(right)
     b, _, h, w = grey_l.shape
     num = max_disparity - min_disparity
     opts = {
