@@ -173,3 +173,33 @@ def test_adaptive_schedule_runs_stereo_when_coverage_drops():
     assert [o.stereo_ran for o in fixed] == [True, False]
     assert [o.stereo_ran for o in strict] == [True, True]
     assert [o.stereo_ran for o in lenient] == [True, False]
+
+
+
+class _OutlierOnFirstFrame(EgoMotionRefiner):
+    """A refiner whose first stereo map carries a confident mismatched patch at 22 px (truth there: ~2 px)."""
+
+    def _stereo(self, left, right, frame, why="verification"):
+        out = super()._stereo(left, right, frame, why)
+        if frame > 0:
+            return out
+        patch = (..., slice(52, 60), slice(84, 92))
+        d, v, var = out.disparity.clone(), out.valid.clone(), out.variance.clone()
+        d[patch], v[patch], var[patch] = 22.0, True, 0.1
+        return out._replace(disparity=d, valid=v, variance=var)
+
+
+def test_predictions_beyond_the_search_range_are_not_valid():
+    # Moving forward, a near point's disparity grows (d' = d / q_z). A stereo outlier at 22 px is a point 0.36 m
+    # away: one 0.1 m step later it predicts ~30 px, beyond the 24 px search range, where no stereo run can check
+    # it, and its magnified footprint wins the z-buffer. Such predictions must not be valid.
+    seq = render_sequence(num_frames=4, height=120, width=160, scene="corridor", motion="forward", seed=3)
+    outs, _ = _run(seq, _OutlierOnFirstFrame(verify_every=100, **SMALL))
+    assert bool((outs[0].valid & (outs[0].disparity == 22.0)).any())  # the outlier is in
+    assert not any(o.stereo_ran for o in outs[1:])
+    assert any(bool((o.disparity >= 24).any()) for o in outs[1:])  # and does predict beyond the range
+    for o in outs:
+        beyond = o.disparity >= 24
+        assert not bool((o.valid & beyond).any())
+        assert not bool((o.confidence[beyond] > 0).any())
+        assert o.valid.float().mean() > 0.85
