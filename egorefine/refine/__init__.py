@@ -1,6 +1,7 @@
 """Predict (eq. 1 + splatting), correct (paper gate/gain or Kalman) and the refiner loop."""
 
 from .correct import CorrectDisparity, Correction, correct_disparity
+from .cracks import close_cracks
 from .predict import PredictDisparity, Prediction, fill_holes_background, predict_disparity
 from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
@@ -8,6 +9,7 @@ __all__ = [
     "CorrectDisparity",
     "Correction",
     "correct_disparity",
+    "close_cracks",
     "PredictDisparity",
     "Prediction",
     "fill_holes_background",

@@ -40,6 +40,7 @@ from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
 from ..stereo import match_stereo
 from .correct import correct_disparity
+from .cracks import close_cracks
 from .predict import predict_disparity
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
@@ -159,6 +160,8 @@ class EgoMotionRefiner(nn.Module):
         adaptive, min_coverage, min_confidence: the adaptive verification schedule.
         max_features, min_tracks: feature budget, and the live-track count under which detection re-runs.
         splat: ``"hard"`` z-buffer splatting or ``"soft"`` (differentiable) in the prediction.
+        fill_cracks: look the prediction's holes up in the keyframe (:func:`~egorefine.refine.cracks.close_cracks`):
+            surfaces magnified beyond the splat's tiling become valid, disocclusions stay holes.
         min_disparity, block_size, stereo_cost, aggregation, subpixel: passed to
             :func:`egorefine.stereo.match_stereo` (its defaults when None).
 
@@ -206,6 +209,7 @@ class EgoMotionRefiner(nn.Module):
         process_noise: float = 0.01,
         kalman_gate: float = 2.0,
         reset_after: int = 1,
+        fill_cracks: bool = True,
     ) -> None:
         super().__init__()
         check_choice(fusion, ("paper", "kalman"), "fusion")
@@ -243,6 +247,7 @@ class EgoMotionRefiner(nn.Module):
         self.process_noise = float(process_noise)
         self.kalman_gate = float(kalman_gate)
         self.reset_after = int(reset_after)
+        self.fill_cracks = bool(fill_cracks)
         # Only the matcher options the caller set are passed on: the matcher's own defaults apply otherwise.
         self.stereo_options = {
             k: v
@@ -362,6 +367,10 @@ class EgoMotionRefiner(nn.Module):
             mode=self.splat,
             process_noise=self.process_noise * steps,
         )
+        if self.fill_cracks:
+            # holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it
+            pred = close_cracks(pred, state.key_disparity, state.key_variance, state.key_valid, key_motion, K, baseline,
+                                process_noise=self.process_noise * steps)
         # A predicted value outside the stereo search range cannot be verified by the next stereo run. On the test
         # scenes such values are mostly a stereo outlier magnified by the approach (a mismatched patch at 54 px in a
         # corridor whose truth there is 11 px grows past 100 px within four frames forward, and its large footprint
