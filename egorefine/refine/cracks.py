@@ -77,62 +77,60 @@ def close_cracks(
     check_shape(motion, ["B", "4", "4"], "motion", dims)
     B, _, H, W = key_disparity.shape
     with torch.no_grad():
-        hole = ~prediction.valid[:, 0]
-        b_idx, ys, xs = hole.nonzero(as_tuple=True)
-        if b_idx.numel() == 0:
+        idx = (~prediction.valid).view(-1).nonzero().squeeze(1)  # flat indices of the hole pixels
+        if idx.numel() == 0:
             return prediction
         dtype = key_disparity.dtype
+        b_idx, pix = idx.div(H * W, rounding_mode="floor"), idx.remainder(H * W)
+        ys, xs = pix.div(W, rounding_mode="floor").to(dtype), pix.remainder(W).to(dtype)
         fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
-        # key_T_t in pixel-homogeneous form: h = M (u, v, 1) + m d
-        R, t = motion[:, :3, :3].transpose(1, 2), -(motion[:, :3, :3].transpose(1, 2) @ motion[:, :3, 3:])[..., 0]
+        # key_T_t in pixel-homogeneous form: h = M (u, v, 1) + m d, M = K R' K^-1, m = K t' / (f B)
+        R = motion[:, :3, :3].transpose(1, 2)
+        t = -(R @ motion[:, :3, 3:])[..., 0]
         zero, one = torch.zeros_like(fx), torch.ones_like(fx)
         Kp = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], -1).view(B, 3, 3)
         Kinv = torch.stack([1 / fx, zero, -cx / fx, zero, 1 / fy, -cy / fy, zero, zero, one], -1).view(B, 3, 3)
-        M = (Kp @ R @ Kinv)[b_idx]  # (N, 3, 3)
+        M = (Kp @ R @ Kinv)[b_idx]  # (N, 3, 3): per point, a gather of 9 numbers
         m = ((Kp @ t[..., None])[..., 0] / (fx * baseline)[:, None])[b_idx]  # (N, 3)
-        pix = torch.stack([xs.to(dtype), ys.to(dtype), torch.ones_like(xs, dtype=dtype)], -1)
-        base = (M @ pix[..., None])[..., 0]  # (N, 3)
-        flat_d = key_disparity.reshape(-1)
-        flat_var = key_variance.reshape(-1)
+        base = M[:, :, 0] * xs[:, None] + M[:, :, 1] * ys[:, None] + M[:, :, 2]  # (N, 3)
+        flat_d, flat_var = key_disparity.reshape(-1), key_variance.reshape(-1)
         flat_ok = key_valid.reshape(-1)
         offset = b_idx * (H * W)
 
-        def look_up(d: torch.Tensor):
+        def look_up(d: torch.Tensor, with_variance: bool):
             """Keyframe sample at the back-projection of disparity ``d``: (value, variance, ok, h_z)."""
-            h = base + m * d[:, None]
+            h = torch.addcmul(base, m, d[:, None])
             hz = h[:, 2].clamp_min(_MIN_DEPTH_RATIO)
             sx, sy = h[:, 0] / hz, h[:, 1] / hz
             inside = (h[:, 2] > _MIN_DEPTH_RATIO) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
-            x0 = sx.clamp(0, W - 1).floor().clamp_max(W - 2).long()
-            y0 = sy.clamp(0, H - 1).floor().clamp_max(H - 2).long()
-            fx_, fy_ = (sx - x0).clamp(0, 1), (sy - y0).clamp(0, 1)
-            corners = [offset + (y0 + j) * W + (x0 + i) for j in (0, 1) for i in (0, 1)]
-            weights = [(1 - fx_) * (1 - fy_), fx_ * (1 - fy_), (1 - fx_) * fy_, fx_ * fy_]
-            vals = torch.stack([flat_d[c] for c in corners])
-            ok = inside & torch.stack([flat_ok[c] for c in corners]).all(0)
-            ok &= (vals.amax(0) - vals.amin(0)) <= surface_tolerance
-            w = torch.stack(weights)
-            value = (w * vals).sum(0)
-            var = (w * torch.stack([flat_var[c] for c in corners])).sum(0)
-            return value, var, ok, hz
+            x0 = sx.clamp(0, W - 1).floor_().clamp_max_(W - 2)
+            y0 = sy.clamp(0, H - 1).floor_().clamp_max_(H - 2)
+            ax, ay = (sx - x0).clamp_(0, 1), (sy - y0).clamp_(0, 1)
+            first = offset + y0.long() * W + x0.long()
+            corners = torch.stack([first, first + 1, first + W, first + W + 1])  # (4, N)
+            vals = flat_d.take(corners)
+            ok = inside & flat_ok.take(corners).all(0) & ((vals.amax(0) - vals.amin(0)) <= surface_tolerance)
+            w = torch.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay])  # (4, N)
+            var = (w * flat_var.take(corners)).sum(0) if with_variance else None
+            return (w * vals).sum(0), var, ok, hz
 
-        d = prediction.disparity[b_idx, 0, ys, xs]
-        step = torch.full_like(d, float("inf"))
+        d = prediction.disparity.reshape(-1)[idx]
+        iterations = max(1, int(iterations))
         ok = torch.ones_like(d, dtype=torch.bool)
-        for _ in range(max(1, int(iterations))):
-            value, var, sample_ok, hz = look_up(d)
+        for i in range(iterations):
+            value, var, sample_ok, hz = look_up(d, with_variance=i == iterations - 1)
             new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
             step = (new - d).abs()
             ok &= sample_ok
             d = torch.where(sample_ok, new, d)
         accept = ok & (step <= tolerance)
-        var = var * hz * hz + process_noise
+        keep = accept.nonzero().squeeze(1)
+        at = idx[keep]
         disparity = prediction.disparity.clone()
         variance = prediction.variance.clone()
         valid = prediction.valid.clone()
-        keep = ~accept
-        disparity[b_idx, 0, ys, xs] = torch.where(accept, d, disparity[b_idx, 0, ys, xs])
-        variance[b_idx, 0, ys, xs] = torch.where(accept, var, variance[b_idx, 0, ys, xs])
-        valid[b_idx, 0, ys, xs] = accept | (keep & valid[b_idx, 0, ys, xs])
+        disparity.view(-1)[at] = d[keep]
+        variance.view(-1)[at] = var[keep] * hz[keep].square() + process_noise
+        valid.view(-1)[at] = True
         confidence = torch.where(valid, 1.0 / (1.0 + variance), torch.zeros_like(variance))
     return prediction._replace(disparity=disparity, variance=variance, valid=valid, confidence=confidence)
