@@ -83,6 +83,7 @@ _COVER_SLACK = 0.1
 _CORNERS = ((0, 0), (1, 0), (0, 1), (1, 1))
 # Margin (pixels) of the padded flat layout of target and source maps (see _Padded).
 _PAD = 2
+_PASSES = 2
 
 
 class Prediction(NamedTuple):
@@ -362,17 +363,242 @@ def _predict(
     src_ok = d >= 0
     if valid is not None:
         src_ok = src_ok & valid[:, 0]
-    big = _big(dtype)
-    slack = 0.5 + _COVER_SLACK
 
     # Pixel-homogeneous form (see _pixel_motion); the grid enters as a column and a row vector.
     A, a, G, e = _pixel_motion(motion, K, baseline)
     xs = torch.arange(W, device=device, dtype=dtype).view(1, 1, W)
     ys = torch.arange(H, device=device, dtype=dtype).view(1, H, 1)
+    layout = _Padded(B, H, W, device)
+    back = [_affine_map(G, k, xs, ys) for k in range(3)]  # target pixels turned into frame t-1
 
-    def per_batch(x: torch.Tensor) -> torch.Tensor:
-        return x.reshape(B, 1, 1)
+    if mode == "hard" and refine_iterations > 0:
+        est, est_var, landed, src_ok, key_src = _hard_start(
+            d, var, src_ok, A, a, e, back, layout, xs, ys, surface_tolerance, fast
+        )
+    else:
+        key_src = None
+        est, est_var, landed, src_ok = _coverage_splat(
+            d, var, src_ok, A, a, G, e, back, layout, xs, ys, mode, temperature, refine_iterations, surface_tolerance,
+            fast,
+        )
+    if refine_iterations > 0:
+        est, landed = _refine(
+            est, landed, key_src is not None, d, src_ok, key_src, A, a, e, back, layout, refine_iterations,
+            surface_tolerance, fast,
+        )
 
+    landed_f = landed.to(dtype)
+    hole4 = ~landed[:, None]
+    est = (est * landed_f)[:, None]
+    if fill_holes:
+        est, _ = fill_holes_background(est, hole4)
+    carried = (est_var + process_noise) if est_var is not None else torch.full_like(landed_f, process_noise)
+    out_var = torch.lerp(torch.full_like(landed_f, hole_variance), carried, landed_f)[:, None]
+    confidence = landed_f[:, None] / (1.0 + out_var)
+    return Prediction(est, out_var, hole4, ~hole4, confidence)
+
+
+def _per_batch(x: torch.Tensor) -> torch.Tensor:
+    return x.reshape(x.shape[0], 1, 1)
+
+
+def _hard_start(
+    d: torch.Tensor,
+    var: torch.Tensor | None,
+    src_ok: torch.Tensor,
+    A: torch.Tensor,
+    a: torch.Tensor,
+    e: torch.Tensor,
+    back: list[torch.Tensor],
+    layout: _Padded,
+    xs: torch.Tensor,
+    ys: torch.Tensor,
+    surface_tolerance: float,
+    fast: bool,
+):
+    """Hard mode with refinement: the surface each target pixel sees and a start value on it.
+
+    Every moved source point is sent to its nearest target pixel (one ``amax`` scatter of integer keys:
+    the bits of ``d'`` as float32, which order like the values for ``d' >= 0``). A target's candidates
+    are the nearest surface within one pixel (the 3x3 maximum, which closes the cracks of a
+    magnification up to 2) and, behind it, what landed on the pixel itself. A candidate is accepted
+    when the target, sent back into frame ``t-1`` at its depth, falls in a source pixel whose ``d'`` is
+    within ``surface_tolerance`` of it (the surface really reaches the target: no foreground fattening);
+    the first accepted candidate wins and that source pixel's ``d'`` and variance are the start.
+
+    Returns ``(est, est_var, landed, src_ok)``, maps ``(B, H, W)`` (``est_var`` None without variance).
+    """
+    B, H, W = d.shape
+    dtype = d.dtype
+    big = _big(dtype)
+    with torch.no_grad():
+        dd = d.detach()
+        Pz = _affine_map(A, 2, xs, ys).addcmul_(dd, _per_batch(a[:, 2]))
+        src_ok = src_ok & (Pz > _MIN_DEPTH_RATIO)
+        inv = Pz.clamp_min_(_MIN_DEPTH_RATIO).reciprocal_()  # 1 / q_z, clamped first
+        d_new = dd * inv  # f B / Z' with Z' = Z q_z
+        not_ok = ~src_ok
+        # z-buffer keys; -1 for invalid sources (the maximum ignores them, an empty target keeps -1)
+        key = d_new.to(torch.float32).view(torch.int32).masked_fill(not_ok, -1)
+        tx = _affine_map(A, 0, xs, ys).addcmul_(dd, _per_batch(a[:, 0])).mul_(inv).round_().clamp_(-_PAD, W + 1)
+        ty = _affine_map(A, 1, xs, ys).addcmul_(dd, _per_batch(a[:, 1])).mul_(inv).round_().clamp_(-_PAD, H + 1)
+        zbuf = torch.full((layout.size,), -1, dtype=torch.int32, device=d.device)
+        zbuf.scatter_reduce_(0, layout.index(tx, ty), key.view(-1), "amax")
+        del tx, ty, key
+        Z = zbuf.view(B, layout.Hp, layout.Wp)[:, _PAD - 1 : _PAD + H + 1, _PAD - 1 : _PAD + W + 1]
+        rows = torch.maximum(torch.maximum(Z[..., :-2], Z[..., 1:-1]), Z[..., 2:])
+        near = torch.maximum(torch.maximum(rows[:, :-2], rows[:, 1:-1]), rows[:, 2:])  # nearest within 1 px
+        own = Z[:, 1:-1, 1:-1]  # what landed on the pixel itself
+        key_new = layout.pad(d_new.masked_fill_(not_ok, -big), -big)  # d' of valid sources, -big elsewhere
+        key_src = layout.pad(dd.masked_fill(not_ok, -big), -big)  # the same in frame t-1 (d)
+
+        def check(cand: torch.Tensor, cand_ok: torch.Tensor):
+            """Send the targets back at ``cand``: the source pixel they fall in and whether its disparity matches
+            the one the candidate implies there (compared in frame t-1, like the refinement's neighbours)."""
+            sx, sy, inv_h, front = _back_project(back, e, cand, True)
+            s_idx = layout.index(sx.clamp_(-1, W).round_(), sy.clamp_(-1, H).round_(), torch.int32)
+            found = key_src.index_select(0, s_idx).view(B, H, W)
+            ok = found.sub_(inv_h.mul_(cand)).abs_() < surface_tolerance
+            return ok.logical_and_(front).logical_and_(cand_ok), s_idx
+
+        def as_value(bits: torch.Tensor) -> torch.Tensor:
+            return bits.clamp_min(0).view(torch.float32).to(dtype)
+
+        # The candidate: what landed on the pixel itself where it is on the nearest surface within 1 px (the 3x3
+        # maximum is off by that surface's slope), else that maximum.
+        near_v, own_v = as_value(near), as_value(own)
+        same = (near_v - own_v).abs_() < surface_tolerance
+        landed, picked = check(torch.lerp(near_v, own_v, same.to(dtype)), near >= 0)
+        # Where that failed, check the d' of the source pixel found there: the background seen behind a fattened
+        # foreground edge, or a steep surface's own value.
+        found = key_new.index_select(0, picked).view(B, H, W)
+        ok, s_idx = check(found.clamp_min(0.0), (found >= 0) & (near >= 0))
+        landed |= ok
+        picked = picked + ok.view(-1).to(torch.int32) * (s_idx - picked)
+        del zbuf, Z, rows, near, own
+    if fast:
+        est = key_new.index_select(0, picked).view(B, H, W).clamp_min_(0.0)
+    else:
+        inv_g = (_affine_map(A, 2, xs, ys) + d * _per_batch(a[:, 2])).clamp_min(_MIN_DEPTH_RATIO).reciprocal()
+        est = layout.pad(d * inv_g, 0.0).index_select(0, picked).view(B, H, W)
+        inv = inv_g
+    est_var = None
+    if var is not None:
+        # first-order propagation d' = d / q_z; replicated margins (a target just outside takes the border's)
+        est_var = layout.pad(var * inv * inv, None).index_select(0, picked).view(B, H, W)
+    return est, est_var, landed, src_ok, key_src
+
+
+def _refine(
+    est: torch.Tensor,
+    landed: torch.Tensor,
+    guard: bool,
+    d: torch.Tensor,
+    src_ok: torch.Tensor,
+    key_src: torch.Tensor | None,
+    A: torch.Tensor,
+    a: torch.Tensor,
+    e: torch.Tensor,
+    back: list[torch.Tensor],
+    layout: _Padded,
+    refine_iterations: int,
+    surface_tolerance: float,
+    fast: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse-warp refinement (module docstring): exact sub-pixel values on smooth surfaces.
+
+    With ``guard``, a target whose first step moves it by more than ``surface_tolerance`` is unlanded: the inverse
+    warp does not settle there (magnification well beyond 2, where the nearest-sample start is unstable).
+    Returns the refined ``est`` and ``landed``.
+    """
+    B, H, W = d.shape
+    dtype = d.dtype
+    big = _big(dtype)
+    shifts = [j * layout.Wp + i for i, j in _CORNERS]
+    with torch.no_grad():
+        # source disparity where valid, far below any disparity where not: one gather gives value and test
+        if key_src is None:
+            key_src = layout.pad(torch.add(d, src_ok.to(dtype) - 1.0, alpha=big), -big)
+        idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
+    d_src_pad = key_src if fast else layout.pad(d, 0.0)
+    a_z = _per_batch(a[:, 2])
+    for step in range(refine_iterations):
+        sxf, syf, inv_h, hz_ok = _back_project(back, e, est, fast)
+        expect = est * inv_h  # the source disparity this target value came from
+        with torch.no_grad():
+            rx0 = sxf.clamp(-_PAD, W + 1).floor_()
+            ry0 = syf.clamp(-_PAD, H + 1).floor_()
+            idx00 = layout.index(rx0, ry0, idx_dtype)
+        rfu, rfv = sxf - rx0, syf - ry0
+        rwx, rwy = (1 - rfu, rfu), (1 - rfv, rfv)
+        wk_sum, d_num = None, None
+        for (i, j), c in zip(_CORNERS, shifts, strict=True):
+            g = key_src[c:].index_select(0, idx00).view(B, H, W)
+            with torch.no_grad():
+                same = torch.sub(g, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
+            if fast:
+                wk = same.mul_(rwx[i]).mul_(rwy[j])
+                if wk_sum is None:
+                    wk_sum, d_num = wk.clone(), wk * g
+                else:
+                    wk_sum.add_(wk)
+                    d_num.addcmul_(wk, g)
+            else:
+                wk = rwx[i] * rwy[j] * same
+                gv = d_src_pad[c:].index_select(0, idx00).view(B, H, W)
+                wk_sum = wk if wk_sum is None else wk_sum + wk
+                d_num = wk * gv if d_num is None else d_num + wk * gv
+        with torch.no_grad():
+            ok_ref = landed & hz_ok & (wk_sum > 1e-3)
+        wk_safe = wk_sum.clamp_min_(1e-3) if fast else wk_sum.clamp_min(1e-3)
+        d_src = d_num.div_(wk_safe) if fast else d_num / wk_safe
+        # move the sampled point forward again (eq. 1); only its new depth ratio q_z is needed
+        qz2 = torch.addcmul(_per_batch(A[:, 2, 0]) * sxf + _per_batch(A[:, 2, 2]), syf, _per_batch(A[:, 2, 1]))
+        qz2 = qz2.addcmul_(d_src, a_z)
+        with torch.no_grad():
+            ok_ref = (ok_ref & (qz2 > _MIN_DEPTH_RATIO)).to(dtype)
+        if fast:
+            qz2.clamp_min_(_MIN_DEPTH_RATIO)
+            new_est = d_src.div_(qz2)
+        else:
+            qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
+            new_est = d_src / qz2
+        if guard and step == 0:
+            with torch.no_grad():
+                settled = (new_est - est).abs() <= surface_tolerance
+                landed = landed & settled
+                ok_ref = ok_ref * settled
+        est = torch.lerp(est, new_est, ok_ref)
+    return est, landed
+
+
+def _coverage_splat(
+    d: torch.Tensor,
+    var: torch.Tensor | None,
+    src_ok: torch.Tensor,
+    A: torch.Tensor,
+    a: torch.Tensor,
+    G: torch.Tensor,
+    e: torch.Tensor,
+    back: list[torch.Tensor],
+    layout: _Padded,
+    xs: torch.Tensor,
+    ys: torch.Tensor,
+    mode: str,
+    temperature: float,
+    refine_iterations: int,
+    surface_tolerance: float,
+    fast: bool,
+):
+    """Soft mode, or hard mode without refinement: the coverage test, z-buffer and splatting (module docstring).
+
+    Returns ``(est, est_var, landed, src_ok)``, maps ``(B, H, W)`` (``est_var`` None without variance).
+    """
+    B, H, W = d.shape
+    dtype = d.dtype
+    big = _big(dtype)
+    slack = 0.5 + _COVER_SLACK
+    per_batch = _per_batch
     # ---- move every source point (eq. 1) and project it into frame t
     Px, Py, Pz = (_affine_map(A, k, xs, ys).addcmul_(d, per_batch(a[:, k])) for k in range(3))
     src_ok = src_ok & (Pz > _MIN_DEPTH_RATIO)
@@ -385,14 +611,12 @@ def _predict(
 
     # ---- footprint: the four target pixels (x0 + i, y0 + j) around each moved point (_CORNERS), in a padded
     # flat layout: out-of-image corners land in margin cells that are never read back.
-    layout = _Padded(B, H, W, device)
     x0 = u.detach().clamp(-_PAD, W + 1).floor_()
     y0 = v.detach().clamp(-_PAD, H + 1).floor_()
     fu, fv = u - x0, v - y0
     tgt = layout.index(x0, y0)  # of corner (0, 0); corner (i, j) is read and written through a view shifted by
     shifts = [j * layout.Wp + i for i, j in _CORNERS]  # j * Wp + i cells, with the same index
 
-    back = [_affine_map(G, k, xs, ys) for k in range(3)]  # target pixels turned into frame t-1
 
     with torch.no_grad():
         # Coverage test: the target centre T sent back into frame t-1 at the moved point's depth must fall in
@@ -498,65 +722,7 @@ def _predict(
         del wsum, num, num_var
     del s_idx, s_d, consistent, keys, tgt
 
-    # ---- inverse-warp refinement: exact sub-pixel values on smooth surfaces
-    if refine_iterations > 0:
-        with torch.no_grad():
-            # source disparity where valid, far below any disparity where not: one gather gives value and test
-            key_src = layout.pad(torch.add(d, not_ok, alpha=big), -big)
-            idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
-        d_src_pad = key_src if fast else layout.pad(d, 0.0)
-        a_z = per_batch(a[:, 2])
-    for _ in range(refine_iterations):
-        sxf, syf, inv_h, hz_ok = _back_project(back, e, est, fast)
-        expect = est * inv_h  # the source disparity this target value came from
-        with torch.no_grad():
-            rx0 = sxf.clamp(-_PAD, W + 1).floor_()
-            ry0 = syf.clamp(-_PAD, H + 1).floor_()
-            idx00 = layout.index(rx0, ry0, idx_dtype)
-        rfu, rfv = sxf - rx0, syf - ry0
-        rwx, rwy = (1 - rfu, rfu), (1 - rfv, rfv)
-        wk_sum, d_num = None, None
-        for (i, j), c in zip(_CORNERS, shifts, strict=True):
-            g = key_src[c:].index_select(0, idx00).view(B, H, W)
-            with torch.no_grad():
-                same = torch.sub(g, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
-            if fast:
-                wk = same.mul_(rwx[i]).mul_(rwy[j])
-                if wk_sum is None:
-                    wk_sum, d_num = wk.clone(), wk * g
-                else:
-                    wk_sum.add_(wk)
-                    d_num.addcmul_(wk, g)
-            else:
-                wk = rwx[i] * rwy[j] * same
-                gv = d_src_pad[c:].index_select(0, idx00).view(B, H, W)
-                wk_sum = wk if wk_sum is None else wk_sum + wk
-                d_num = wk * gv if d_num is None else d_num + wk * gv
-        with torch.no_grad():
-            ok_ref = landed & hz_ok & (wk_sum > 1e-3)
-        wk_safe = wk_sum.clamp_min_(1e-3) if fast else wk_sum.clamp_min(1e-3)
-        d_src = d_num.div_(wk_safe) if fast else d_num / wk_safe
-        # move the sampled point forward again (eq. 1); only its new depth ratio q_z is needed
-        qz2 = torch.addcmul(per_batch(A[:, 2, 0]) * sxf + per_batch(A[:, 2, 2]), syf, per_batch(A[:, 2, 1]))
-        qz2 = qz2.addcmul_(d_src, a_z)
-        with torch.no_grad():
-            ok_ref = (ok_ref & (qz2 > _MIN_DEPTH_RATIO)).to(dtype)
-        if fast:
-            qz2.clamp_min_(_MIN_DEPTH_RATIO)
-            est = torch.lerp(est, d_src.div_(qz2), ok_ref)
-        else:
-            qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
-            est = torch.lerp(est, d_src / qz2, ok_ref)
-
-    landed_f = landed.to(dtype)
-    hole4 = ~landed[:, None]
-    est = (est * landed_f)[:, None]
-    if fill_holes:
-        est, _ = fill_holes_background(est, hole4)
-    carried = (est_var + process_noise) if est_var is not None else torch.full_like(landed_f, process_noise)
-    out_var = torch.lerp(torch.full_like(landed_f, hole_variance), carried, landed_f)[:, None]
-    confidence = landed_f[:, None] / (1.0 + out_var)
-    return Prediction(est, out_var, hole4, ~hole4, confidence)
+    return est, est_var, landed, src_ok
 
 
 class PredictDisparity(nn.Module):
