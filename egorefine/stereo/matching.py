@@ -26,6 +26,7 @@ from ..core import (
     check_shape,
     to_grey,
 )
+from . import _sgm_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
@@ -209,6 +210,12 @@ def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, to
     return disparity, valid, variance
 
 
+def _use_numba_sgm(grey: torch.Tensor, cost: str, num: int, needs_grad: bool) -> bool:
+    """The compiled census + SGM path applies: numba present, float32 CPU tensors, no gradient, >= 2 candidates."""
+    return (_sgm_numba.AVAILABLE and cost == "census" and not needs_grad and grey.device.type == "cpu"
+            and grey.dtype == torch.float32 and num >= 2)
+
+
 def match_stereo(
     left: torch.Tensor,
     right: torch.Tensor,
@@ -288,22 +295,27 @@ def match_stereo(
         return StereoOutput(*match_sad_int(grey_l.detach(), grey_r.detach(), max_disparity, min_disparity,
                                            block_size, prefilter_cap, scale,
                                            {**opts, "texture_threshold": texture_threshold}))
-    feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
     # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
     texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
     textured = texture >= texture_threshold
 
     parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     if aggregation == "sgm":
-        vol = strip_volume(feat, 0, h, min_disparity)
         p1, p2 = _SGM_PENALTIES[cost]
-        p1 = p1 if sgm_p1 is None else sgm_p1
-        p2 = p2 if sgm_p2 is None else sgm_p2
-        vol = sgm_aggregate(vol, p1 * opts["scale"], p2 * opts["scale"], sgm_paths)
+        p1 = (p1 if sgm_p1 is None else sgm_p1) * opts["scale"]
+        p2 = (p2 if sgm_p2 is None else sgm_p2) * opts["scale"]
+    if aggregation == "sgm" and _use_numba_sgm(grey_l, cost, num, differentiable or needs_grad):
+        # CPU inference: census, SGM and selection compiled (the same float32 results as below)
+        parts.append(_sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size,
+                                                  census_window, p1, p2, sgm_paths, opts)[:3])
+    elif aggregation == "sgm":
+        feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
+        vol = sgm_aggregate(strip_volume(feat, 0, h, min_disparity), p1, p2, sgm_paths)
         rows = max(1, _STRIP_ELEMENTS // max(1, b * num * w))
         for y0 in range(0, h, rows):
             parts.append(_select(vol[:, :, y0 : y0 + rows], max_disparity, opts))
     else:
+        feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
         rows = max(1, _STRIP_ELEMENTS // max(1, b * num * (w + block_size)))
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)

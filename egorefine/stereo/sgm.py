@@ -83,19 +83,22 @@ def sgm_aggregate(volume: torch.Tensor, p1: float, p2: float, paths: int = 4) ->
     >>> sgm_aggregate(torch.rand(1, 5, 6, 7), 0.1, 0.5).shape
     torch.Size([1, 5, 6, 7])
     """
+    # columns of (B, D, H): the horizontal paths first (left-to-right + right-to-left), then the others
+    # added to them in place, in this order (the compiled CPU path adds them in the same order, so its
+    # float32 sums are equal to these bit for bit)
+    by_col = volume.permute(3, 0, 1, 2).contiguous()
+    horizontal = _scan(by_col, p1, p2, True, 0, _scan(by_col, p1, p2, False, 0))
+    del by_col
     # rows of (B, D, W): vertical paths (and the diagonals, which shift by one column per row)
+    total = horizontal.permute(3, 1, 2, 0).contiguous()
+    del horizontal
     by_row = volume.permute(2, 0, 1, 3).contiguous()
-    total = torch.zeros_like(by_row)
     shifts = (0, 1, -1) if paths == 8 else (0,)
     for reverse in (False, True):
         for dx in shifts:
             total = _scan(by_row, p1, p2, reverse, dx, total)
     del by_row
-    # columns of (B, D, H): horizontal paths
-    by_col = volume.permute(3, 0, 1, 2).contiguous()
-    horizontal = _scan(by_col, p1, p2, True, 0, _scan(by_col, p1, p2, False, 0))
-    del by_col
     total = total.permute(1, 2, 0, 3)
-    if total.requires_grad or horizontal.requires_grad:
-        return (total + horizontal.permute(1, 2, 3, 0)) / paths
-    return total.add_(horizontal.permute(1, 2, 3, 0)).div_(paths)
+    if total.requires_grad:
+        return total / paths
+    return total.div_(paths)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
-from egorefine.stereo import sgm_aggregate
+from egorefine.stereo import _sgm_numba, match_stereo, sgm_aggregate
+
+from ._synthetic import planar_pair
 
 
 def _naive_path(vol, p1, p2, dy, dx):
@@ -54,3 +57,99 @@ def test_sgm_gradcheck():
     gen = torch.Generator().manual_seed(1)
     vol = torch.rand(1, 4, 4, 5, generator=gen, dtype=torch.float64).requires_grad_()
     assert torch.autograd.gradcheck(lambda v: sgm_aggregate(v, 0.05, 0.3, 8), (vol,), fast_mode=True)
+
+
+# --- the compiled CPU path (egorefine.stereo._sgm_numba) against the torch path ---------------------------------
+
+_OPTS = {"subpixel": True, "subpixel_fit": "equiangular", "lr_check": True, "lr_threshold": 1,
+         "uniqueness_ratio": 0.15, "differentiable": False, "soft_radius": 2, "temperature": 0.2, "cost_floor": 0.1}
+
+
+def _torch_reference(left, right, max_d, min_d, block, window, p1, p2, paths, opts):
+    """The torch path of match_stereo's SGM branch, before texture check and zeroing: (volume, d, valid, var)."""
+    from egorefine.stereo.cost import _Features, strip_volume
+    from egorefine.stereo.matching import _select
+
+    feat = _Features(left, right, "census", block, max_d, window, True, 31 / 255)
+    vol = sgm_aggregate(strip_volume(feat, 0, left.shape[-2], min_d), p1, p2, paths)
+    ref = vol.clone()  # _select encodes its input in place
+    return (ref, *_select(vol, max_d, opts))
+
+
+def _random_pair(b, h, w, seed, shift=3):
+    gen = torch.Generator().manual_seed(seed)
+    left = torch.rand(b, 1, h, w, generator=gen)
+    right = 0.8 * torch.roll(left, -shift, dims=-1) + 0.2 * torch.rand(b, 1, h, w, generator=gen)
+    return left, right
+
+
+needs_numba = pytest.mark.skipif(not _sgm_numba.AVAILABLE, reason="numba not installed")
+
+
+@needs_numba
+@pytest.mark.parametrize(("max_d", "min_d", "block", "window", "p1", "p2", "paths", "fit", "threads"), [
+    (8, 0, 5, 5, 12.5, 75.0, 4, "equiangular", 2),  # match_stereo's census defaults (x block**2)
+    (12, 3, 3, 7, 0.37, 2.1, 8, "parabola", 1),  # penalties not exact in float32, 48-bit census, diagonals
+    (9, 0, 7, 3, 4.0, 9.0, 4, "equiangular", 3),  # odd band split, odd number of candidates
+])
+def test_numba_equals_torch_path(max_d, min_d, block, window, p1, p2, paths, fit, threads):
+    left, right = _random_pair(2, 21, 37, seed=max_d, shift=min_d + 3)
+    opts = {**_OPTS, "subpixel_fit": fit, "scale": float(block * block), "min_disparity": min_d}
+    ref_vol, ref_d, ref_v, ref_var = _torch_reference(left, right, max_d, min_d, block, window, p1, p2, paths, opts)
+    d, v, var, vol = _sgm_numba.census_sgm_select(left, right, max_d, min_d, block, window, p1, p2, paths, opts,
+                                                  threads=threads, return_volume=True)
+    # the same float32 operations in the same order: equal bit for bit, not just close
+    assert torch.equal(vol, ref_vol)
+    assert torch.equal(d, ref_d) and torch.equal(v, ref_v) and torch.equal(var, ref_var)
+    assert 0.3 < v.float().mean() < 1.0  # the checks pass some pixels and reject others
+
+
+@needs_numba
+def test_match_stereo_numba_equals_torch_on_rendered_pair(monkeypatch):
+    left, right, _ = planar_pair(1, 40, 72, seed=3)
+    kw = {"cost": "census", "aggregation": "sgm", "block_size": 5}
+    fast = match_stereo(left, right, 16, **kw)
+    monkeypatch.setattr(_sgm_numba, "AVAILABLE", False)
+    slow = match_stereo(left, right, 16, **kw)
+    for a, b in zip(fast, slow, strict=True):
+        assert torch.equal(a, b)
+    assert fast.valid.float().mean() > 0.7
+
+
+@needs_numba
+def test_numba_batch_item_equals_alone():
+    left, right = _random_pair(2, 18, 30, seed=7)
+    kw = {"cost": "census", "aggregation": "sgm", "block_size": 3}
+    both = match_stereo(left, right, 8, **kw)
+    for i in range(2):
+        alone = match_stereo(left[i : i + 1], right[i : i + 1], 8, **kw)
+        for a, b in zip(both, alone, strict=True):
+            assert torch.equal(a[i : i + 1], b)
+
+
+def test_torch_path_when_numba_is_off_or_not_applicable(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("the compiled path ran")
+
+    left, right = _random_pair(1, 12, 20, seed=2)
+    kw = {"cost": "census", "aggregation": "sgm", "block_size": 3}
+    monkeypatch.setattr(_sgm_numba, "census_sgm_select", refuse)
+    monkeypatch.setattr(_sgm_numba, "AVAILABLE", False)
+    out = match_stereo(left, right, 6, **kw)
+    assert out.disparity.shape == (1, 1, 12, 20)
+    monkeypatch.setattr(_sgm_numba, "AVAILABLE", True)
+    match_stereo(left.double(), right.double(), 6, **kw)  # float64: torch path
+    match_stereo(left, right, 6, **{**kw, "cost": "sad"})  # SGM of other costs: torch path
+    with pytest.raises(AssertionError, match="compiled path"):
+        match_stereo(left, right, 6, **kw)
+
+
+@needs_numba
+def test_numba_textureless_pair_is_all_invalid_without_nan():
+    flat = torch.full((1, 1, 16, 24), 0.5)
+    out = match_stereo(flat, flat, 8, cost="census", aggregation="sgm", block_size=5)
+    assert not out.valid.any()
+    assert torch.isfinite(out.disparity).all() and torch.isfinite(out.variance).all()
+    _, v, var, vol = _sgm_numba.census_sgm_select(flat, flat, 8, 0, 5, 5, 12.5, 75.0, 4,
+                                                  {**_OPTS, "scale": 25.0, "min_disparity": 0}, return_volume=True)
+    assert torch.isfinite(vol).all() and torch.isfinite(var).all()
