@@ -18,8 +18,18 @@ every batch item is matched at once, with no Python loop over features:
 4. On level 0 a few Lucas-Kanade (Gauss-Newton) iterations polish the parabola's estimate:
    the parabola alone is biased by the cost's shape (~0.1-0.3 px), the polish brings the
    error to a few hundredths of a pixel on textured images.
-5. A forward-backward check tracks the result back from ``next`` to ``prev`` and rejects
-   features whose round trip misses the start by more than ``fb_threshold`` pixels.
+5. A forward-backward check matches the result back from ``next`` into ``prev`` (one
+   level-0 block match around the keypoint) and rejects features whose round trip misses
+   the start by more than ``fb_threshold`` pixels.
+
+Only the live slots (weight > 0) are matched: empty ones are dropped before and filled in
+after (one host synchronisation per call, which also checks the inputs for NaN/Inf). With a
+``predicted`` position (e.g. from a constant-velocity model) step 2 first searches level 0
+only, ``predicted_radius`` pixels around the prediction; the coarse-to-fine search of steps
+2-3 runs only for the features not found there, so a good prediction skips the coarse
+levels and a bad one keeps the full reach. A caller that tracks a video can pass the
+pyramid of a frame built once (:func:`build_pyramid`) as ``prev_pyramid`` / ``next_pyramid``
+to both calls that use that frame.
 
 ``soft=True`` replaces the arg-min of step 3 on level 0 by a soft-argmax of
 ``-cost / temperature`` over a ``refine_radius`` window around the rounded hard estimate
@@ -37,7 +47,6 @@ import torch.nn.functional as F
 from ..core import (
     ValueRangeError,
     check_choice,
-    check_finite,
     check_float,
     check_same_device,
     check_shape,
@@ -54,7 +63,8 @@ class TrackOutput(NamedTuple):
     """Result of :func:`track`.
 
     Attributes:
-        keypoints: ``(B, N, 2)`` (x, y) positions in ``next``; lost features keep a finite estimate.
+        keypoints: ``(B, N, 2)`` (x, y) positions in ``next``; lost features keep a finite estimate,
+            empty slots (input weight 0) their input position.
         weights: ``(B, N)`` input weight times success (0 for lost, failed forward-backward check,
             out of image, too little texture or too low a score).
         score: ``(B, N)`` match quality at the result: ZNCC in [-1, 1] for ``cost="zncc"``, the
@@ -301,7 +311,13 @@ def _coarse_to_fine(
         scale = 2.0**level
         radius = search_radius if level == levels - 1 else refine_radius
         est_l, best, on_edge = _match_level(
-            pyr_src[level], pyr_dst[level], points / scale, est / scale, patch_size, radius, cost
+            pyr_src[level],
+            pyr_dst[level],
+            points / scale,
+            est / scale,
+            patch_size,
+            radius,
+            cost,
         )
         est = est_l * scale
         if level == edge_level:
@@ -383,7 +399,23 @@ def _lk_refine(
     return pos + frac
 
 
-def _track_level0(
+def _first_true(mask: torch.Tensor, count: int) -> torch.Tensor:
+    """Slot indices (B, count) of each row of ``mask`` (B, N): its True slots first, in order, then the others."""
+    order = torch.sort((~mask).to(torch.uint8), dim=1, stable=True).indices
+    return order[:, :count]
+
+
+def _take(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``x`` (B, N, ...) at slots ``idx`` (B, M) -> (B, M, ...)."""
+    return x.gather(1, idx.view(*idx.shape, *([1] * (x.dim() - 2))).expand(*idx.shape, *x.shape[2:]))
+
+
+def _put(x: torch.Tensor, idx: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """Copy of ``x`` (B, N, ...) with slots ``idx`` (B, M) (distinct per row) set to ``values`` (B, M, ...)."""
+    return x.scatter(1, idx.view(*idx.shape, *([1] * (x.dim() - 2))).expand(*idx.shape, *x.shape[2:]), values)
+
+
+def _match_to_level0(
     pyr_src: list[torch.Tensor],
     pyr_dst: list[torch.Tensor],
     points: torch.Tensor,
@@ -392,24 +424,17 @@ def _track_level0(
     search_radius: int,
     refine_radius: int,
     cost: str,
-    lk_iters: int,
-    temperature: float | None,
-    match_level0: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Full pipeline src -> dst: coarse levels (no autograd), level 0, optional soft step, LK polish.
+    """Coarse-to-fine block matching src -> dst down to level 0: coarse levels without autograd, level 0 with.
 
-    With ``match_level0=False`` (and two levels or more) level 0 skips the block matching: the
-    LK polish (at least one iteration) starts from level 1's estimate, whose window edge is
-    then the one tested. The way back of the forward-backward check uses this.
+    Returns level-0 positions (B, N, 2) (differentiable through level 0's sub-pixel step),
+    level 0's best cost and its on-edge flag (B, N).
     """
     levels = len(pyr_src)
-    skip0 = not match_level0 and levels > 1
     with torch.no_grad():
-        src_d = [p.detach() for p in pyr_src]
-        dst_d = [p.detach() for p in pyr_dst]
-        est, best, edge = _coarse_to_fine(
-            src_d,
-            dst_d,
+        est, _, _ = _coarse_to_fine(
+            [p.detach() for p in pyr_src],
+            [p.detach() for p in pyr_dst],
             points.detach(),
             start.detach(),
             patch_size,
@@ -417,36 +442,96 @@ def _track_level0(
             refine_radius,
             cost,
             1,
-            1 if skip0 else 0,
+            -1,
         )
-    if skip0:
-        return _lk_refine(pyr_src[0], pyr_dst[0], points, est, patch_size, max(lk_iters, 1), cost), best, edge
     radius0 = search_radius if levels == 1 else refine_radius
-    # Level 0 with autograd: the parabola (or the soft-argmax) links positions to the inputs.
-    out, best, edge0 = _match_level(pyr_src[0], pyr_dst[0], points, est, patch_size, radius0, cost)
-    if temperature is not None:
-        # Differentiable step: soft-argmax over a refine_radius window around the hard result.
-        out, _, _ = _match_level(
-            pyr_src[0], pyr_dst[0], points, out.detach(), patch_size, refine_radius, cost, temperature
-        )
-    if lk_iters > 0:
-        out = _lk_refine(pyr_src[0], pyr_dst[0], points, out, patch_size, lk_iters, cost)
-    return out, best, edge | edge0
+    # Level 0 with autograd: the parabola links positions to the inputs.
+    return _match_level(pyr_src[0], pyr_dst[0], points, est, patch_size, radius0, cost)
 
 
-def _check_finite_images(prev: torch.Tensor, next: torch.Tensor) -> None:  # noqa: A002
-    """Raise :class:`ValueRangeError` if an image holds NaN or Inf.
+def _forward_match(
+    pyr_src: list[torch.Tensor],
+    pyr_dst: list[torch.Tensor],
+    points: torch.Tensor,
+    start: torch.Tensor,
+    live: torch.Tensor,
+    patch_size: int,
+    search_radius: int,
+    refine_radius: int,
+    cost: str,
+    predicted_radius: int | None,
+    min_score: float | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Level-0 block matching of ``points`` into dst: (positions, best cost, on-edge flag).
 
-    The same test as ``core.check_finite`` through one sum per image: a sum is finite exactly
-    when every term is (images in [0, 1] cannot overflow it), and a full-size ``isfinite``
-    costs as much as a pyramid level here. One synchronisation for both images.
+    With ``predicted_radius`` (and two levels or more) level 0 is first searched only that far
+    around ``start``; the full coarse-to-fine search then runs for the ``live`` features not
+    found there (minimum on the window's edge or, for ZNCC, score below ``min_score``). A good
+    prediction thus skips the coarse levels, a bad one keeps the full reach.
+    """
+    if predicted_radius is None or len(pyr_src) == 1:
+        return _match_to_level0(pyr_src, pyr_dst, points, start, patch_size, search_radius, refine_radius, cost)
+    out, best, edge = _match_level(pyr_src[0], pyr_dst[0], points, start, patch_size, predicted_radius, cost)
+    with torch.no_grad():
+        miss = edge
+        if min_score is not None and cost == "zncc":
+            miss = miss | (-best < min_score)
+        retry = live & miss
+        count = int(retry.sum(dim=1).max())  # host sync: the size of the second pass
+    if count == 0:
+        return out, best, edge
+    idx = _first_true(retry, count)
+    r_out, r_best, r_edge = _match_to_level0(
+        pyr_src,
+        pyr_dst,
+        _take(points, idx),
+        _take(start, idx),
+        patch_size,
+        search_radius,
+        refine_radius,
+        cost,
+    )
+    # Padding slots (rows with fewer misses than ``count``) keep their first-pass result.
+    sel = _take(retry, idx)
+    out = _put(out, idx, torch.where(sel.unsqueeze(-1), r_out, _take(out, idx)))
+    best = _put(best, idx, torch.where(sel, r_best, _take(best, idx)))
+    edge = _put(edge, idx, torch.where(sel, r_edge, _take(edge, idx)))
+    return out, best, edge
+
+
+def _check_values(
+    prev: torch.Tensor,
+    next: torch.Tensor,  # noqa: A002
+    keypoints: torch.Tensor,
+    weights: torch.Tensor,
+    predicted: torch.Tensor | None,
+) -> int:
+    """Raise :class:`ValueRangeError` on NaN/Inf in an input; return the largest live-feature count of a row.
+
+    The same tests as ``core.check_finite``, all with one synchronisation (which also fetches
+    the count): an image sum is finite exactly when every pixel is (images in [0, 1] cannot
+    overflow it; a full-size ``isfinite`` costs as much as a pyramid level), the largest
+    magnitude of a small tensor is finite exactly when every entry is.
     """
     # Half-precision images are summed in float32: their sum could overflow their own type.
     wide = torch.float32 if prev.element_size() < 4 else prev.dtype
-    finite = torch.isfinite(torch.stack([prev.sum(dtype=wide), next.sum(dtype=wide)]))
-    if not bool(finite.all()):
-        name = "prev" if not bool(finite[0]) else "next"
-        raise ValueRangeError(f"{name}: contains NaN or Inf")
+    names = ["prev", "next", "keypoints", "weights", "predicted"]
+    stats = [prev.sum(dtype=wide), next.sum(dtype=wide)]
+    for t in (keypoints, weights, predicted):
+        stats.append(
+            t.detach().abs().amax().to(wide) if t is not None and t.numel() > 0 else prev.new_zeros((), dtype=wide)
+        )
+    count = (weights > 0).sum(dim=1).amax().to(wide) if weights.numel() > 0 else prev.new_zeros((), dtype=wide)
+    values = torch.cat([torch.isfinite(torch.stack(stats)).to(wide), count.reshape(1)]).tolist()
+    for name, finite in zip(names, values[:5], strict=True):
+        if not finite:
+            raise ValueRangeError(f"{name}: contains NaN or Inf")
+    return int(values[5])
+
+
+def _check_predicted_radius(predicted_radius: int | None) -> None:
+    if predicted_radius is not None and (not isinstance(predicted_radius, int) or predicted_radius < 1):
+        raise ValueRangeError(f"predicted_radius: expected None or an int >= 1, got {predicted_radius!r}")
 
 
 def _check_track_settings(
@@ -494,6 +579,9 @@ def track(
     soft: bool = False,
     temperature: float = 0.02,
     lk_iters: int = 1,
+    predicted_radius: int | None = 2,
+    prev_pyramid: list[torch.Tensor] | None = None,
+    next_pyramid: list[torch.Tensor] | None = None,
 ) -> TrackOutput:
     """Track keypoints from ``prev`` to ``next`` by coarse-to-fine block matching.
 
@@ -501,6 +589,13 @@ def track(
     every finer level ``refine_radius`` around the estimate from the level above, so the
     reach on level 0 is about ``search_radius * 2^(levels-1) + refine_radius * (2^(levels-1) - 1)``
     pixels (with the defaults: 6 * 4 + 2 * 3 = 30 px) around ``predicted`` (or the keypoint).
+    With ``predicted`` and ``predicted_radius``, level 0 is first searched only
+    ``predicted_radius`` px around the prediction, and the coarse-to-fine search runs only for
+    the live features whose best match there lies on the window's edge or scores below
+    ``min_score``: a right prediction costs one level instead of ``levels``.
+
+    Empty slots (weight 0) are not matched: they come back unchanged (at the keypoint) with
+    weight, score and fb_error 0.
 
     A feature fails (weight 0) when its template's standard deviation is below
     ``min_texture``, when level 0's best match lies on the edge of its window, when the
@@ -520,7 +615,7 @@ def track(
         prev: ``(B, C, H, W)`` image the keypoints live in, C in {1, 3}, float in [0, 1].
         next: ``(B, C, H, W)`` image to track into.
         keypoints: ``(B, N, 2)`` (x, y) pixel positions in ``prev``.
-        weights: ``(B, N)`` weights; 0 marks an empty slot (tracked anyway, returned with weight 0).
+        weights: ``(B, N)`` weights; 0 (or less) marks an empty slot (not tracked, returned with weight 0).
         predicted: ``(B, N, 2)`` expected positions in ``next`` to centre the search on, or None.
         patch_size: odd side of the square template.
         search_radius: search radius on the coarsest level (px of that level).
@@ -534,13 +629,19 @@ def track(
         soft: differentiable soft-argmax last step.
         temperature: softmax temperature of the soft step (cost units).
         lk_iters: Lucas-Kanade polish iterations on level 0 (0: the parabola's estimate as is).
+        predicted_radius: with ``predicted``, the level-0 radius of the first search around it
+            (None: always the full coarse-to-fine search). Ignored without ``predicted``.
+        prev_pyramid, next_pyramid: optional ``build_pyramid(prev, L)`` / ``build_pyramid(next, L)``
+            with ``L >= levels`` (e.g. kept from the call that tracked into ``prev``): saves
+            building them. Their level 0 is used instead of ``prev`` / ``next``, which then only
+            give the shapes and the NaN check; the caller keeps them consistent.
 
     Returns:
         :class:`TrackOutput` with keypoints ``(B, N, 2)``, weights, score and fb_error ``(B, N)``.
 
     Raises:
-        ShapeError: shapes of images, keypoints, weights or predicted disagree.
-        ValueRangeError: NaN/Inf in the inputs or a bad setting.
+        ShapeError: shapes of images, keypoints, weights, predicted or a given pyramid disagree.
+        ValueRangeError: NaN/Inf in the inputs, a bad setting or a pyramid with too few levels.
 
     >>> img = torch.rand(1, 1, 48, 64)
     >>> out = track(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1))
@@ -549,72 +650,134 @@ def track(
     """
     dims = check_shape(prev, ["B", "1|3", "H", "W"], "prev")
     check_shape(next, ["B", "1|3", "H", "W"], "next", dims)
-    check_float(prev, "prev")
-    check_float(next, "next")
-    _check_finite_images(prev, next)
     check_shape(keypoints, ["B", "N", "2"], "keypoints", dims)
     check_shape(weights, ["B", "N"], "weights", dims)
-    for name, t in (("keypoints", keypoints), ("weights", weights)):
-        check_float(t, name)
-        check_finite(t, name)
-    check_same_device(prev, "prev", next=next, keypoints=keypoints, weights=weights, predicted=predicted)
     if predicted is not None:
         check_shape(predicted, ["B", "N", "2"], "predicted", dims)
+    for name, t in (("prev", prev), ("next", next), ("keypoints", keypoints), ("weights", weights)):
+        check_float(t, name)
+    if predicted is not None:
         check_float(predicted, "predicted")
-        check_finite(predicted, "predicted")
+    check_same_device(prev, "prev", next=next, keypoints=keypoints, weights=weights, predicted=predicted)
     _check_track_settings(patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters)
+    _check_predicted_radius(predicted_radius)
+    count = _check_values(prev, next, keypoints, weights, predicted)  # one host sync
 
-    h, w = dims["H"], dims["W"]
     keypoints = keypoints.to(prev.dtype)
-    if keypoints.numel() == 0:  # no features (or an empty batch): nothing to match
-        return TrackOutput(keypoints.clone(), weights.clone(), torch.zeros_like(weights), torch.zeros_like(weights))
-    pyr_prev = build_pyramid(prev, levels)
-    pyr_next = build_pyramid(next, levels)
     start = keypoints if predicted is None else predicted.to(prev.dtype)
-    out_kp, best, edge = _track_level0(
+    n = keypoints.shape[1]
+    live = weights > 0
+    if count == 0:  # no features (or an empty batch): nothing to match
+        zeros = torch.zeros_like(weights)
+        return TrackOutput(keypoints.clone(), weights * zeros, zeros, zeros.clone())
+    pyr_prev = _given_pyramid(prev_pyramid, "prev_pyramid", levels, dims) or build_pyramid(prev, levels)
+    pyr_next = _given_pyramid(next_pyramid, "next_pyramid", levels, dims) or build_pyramid(next, levels)
+    settings = dict(
+        patch_size=patch_size,
+        search_radius=search_radius,
+        refine_radius=refine_radius,
+        cost=cost,
+        fb_check=fb_check,
+        fb_threshold=fb_threshold,
+        min_score=min_score,
+        min_texture=min_texture,
+        temperature=temperature if soft else None,
+        lk_iters=lk_iters,
+        predicted_radius=None if predicted is None else predicted_radius,
+    )
+    if count == n:
+        return _track_live(pyr_prev, pyr_next, keypoints, weights, start, **settings)
+    # Only the live slots are matched (empty ones cost as much): the live slots of every row
+    # first, as many columns as the fullest row has live features.
+    idx = _first_true(live, count)
+    sub = _track_live(pyr_prev, pyr_next, _take(keypoints, idx), _take(weights, idx), _take(start, idx), **settings)
+    sub_live = _take(live, idx)
+    zeros = torch.zeros_like(weights)
+    return TrackOutput(
+        _put(keypoints, idx, torch.where(sub_live.unsqueeze(-1), sub.keypoints, _take(keypoints, idx))),
+        _put(weights * zeros, idx, sub.weights),
+        _put(zeros, idx, sub.score * sub_live),
+        _put(zeros, idx, sub.fb_error * sub_live),
+    )
+
+
+def _given_pyramid(
+    pyramid: list[torch.Tensor] | None, name: str, levels: int, dims: dict[str, int]
+) -> list[torch.Tensor] | None:
+    """Check a caller's pyramid (from :func:`build_pyramid`) and return its first ``levels`` levels."""
+    if pyramid is None:
+        return None
+    if not isinstance(pyramid, (list, tuple)) or len(pyramid) < levels:
+        raise ValueRangeError(f"{name}: expected a list of at least levels={levels} tensors from build_pyramid")
+    h, w = dims["H"], dims["W"]
+    for level in range(levels):
+        check_shape(pyramid[level], ["B", "1", "H", "W"], f"{name}[{level}]", {"B": dims["B"], "H": h, "W": w})
+        h, w = (h + 1) // 2, (w + 1) // 2
+    return list(pyramid[:levels])
+
+
+def _track_live(
+    pyr_prev: list[torch.Tensor],
+    pyr_next: list[torch.Tensor],
+    keypoints: torch.Tensor,
+    weights: torch.Tensor,
+    start: torch.Tensor,
+    patch_size: int,
+    search_radius: int,
+    refine_radius: int,
+    cost: str,
+    fb_check: bool,
+    fb_threshold: float,
+    min_score: float | None,
+    min_texture: float,
+    temperature: float | None,
+    lk_iters: int,
+    predicted_radius: int | None,
+) -> TrackOutput:
+    """:func:`track` on pyramids, every slot matched (the caller drops the empty ones beforehand)."""
+    h, w = pyr_prev[0].shape[-2:]
+    live = weights > 0
+    out_kp, best, edge = _forward_match(
         pyr_prev,
         pyr_next,
         keypoints,
         start,
+        live,
         patch_size,
         search_radius,
         refine_radius,
         cost,
-        lk_iters,
-        temperature if soft else None,
+        predicted_radius,
+        min_score,
     )
+    if temperature is not None:
+        # Differentiable step: soft-argmax over a refine_radius window around the hard result.
+        out_kp, _, _ = _match_level(
+            pyr_prev[0], pyr_next[0], keypoints, out_kp.detach(), patch_size, refine_radius, cost, temperature
+        )
+    if lk_iters > 0:
+        out_kp = _lk_refine(pyr_prev[0], pyr_next[0], keypoints, out_kp, patch_size, lk_iters, cost)
     score = -best.detach()
 
     with torch.no_grad():
         kp_d = out_kp.detach()
         kp_in = keypoints.detach()
-        ok = (weights > 0) & ~edge
-        template = _extract_patches(pyr_prev[0].detach(), kp_in.round(), patch_size)
-        ok = ok & (template.flatten(2).std(dim=-1) >= min_texture)
+        ok = live & ~edge
+        # Template spread (unbiased standard deviation, as Tensor.std but several times cheaper here).
+        template = _extract_patches(pyr_prev[0].detach(), kp_in.round(), patch_size).flatten(2)
+        spread = (template - template.mean(dim=-1, keepdim=True)).square().sum(dim=-1)
+        ok = ok & (spread >= min_texture**2 * (patch_size * patch_size - 1))
         if min_score is not None and cost == "zncc":
             ok = ok & (score >= min_score)
         inside = (kp_d[..., 0] >= 0) & (kp_d[..., 0] <= w - 1) & (kp_d[..., 1] >= 0) & (kp_d[..., 1] <= h - 1)
         ok = ok & inside & torch.isfinite(kp_d).all(dim=-1)
         if fb_check:
             # Track the result back into prev, the search centred on the original keypoint, and
-            # measure the round trip. A right match comes back within a pixel or so, so the way
-            # back block-matches on level 1 only (radius refine_radius, i.e. 2 x refine_radius
-            # px), then one LK iteration on level 0: a wrong match lands anywhere in that
-            # window, on its edge or far from the start. (With one level: level 0, radius
-            # refine_radius.)
-            back, _, back_edge = _track_level0(
-                pyr_next[:2],
-                pyr_prev[:2],
-                kp_d,
-                kp_in,
-                patch_size,
-                refine_radius,
-                refine_radius,
-                cost,
-                1,
-                None,
-                match_level0=False,
-            )
+            # measure the round trip. A right match comes back within a fraction of a pixel, so
+            # the way back is one block match on level 0 (radius refine_radius) with its parabola
+            # (~0.1-0.3 px bias, well under fb_threshold): a wrong match lands anywhere in that
+            # window, on its edge or far from the start.
+            back, _, back_edge = _match_level(pyr_next[0], pyr_prev[0], kp_d, kp_in, patch_size, refine_radius, cost)
             fb_error = (back - kp_in).norm(dim=-1)
             ok = ok & ~back_edge & (fb_error <= fb_threshold)
         else:
@@ -626,7 +789,7 @@ def track(
 class Tracker(torch.nn.Module):
     """Module form of :func:`track`; stores the settings.
 
-    ``forward(prev, next, keypoints, weights, predicted=None) -> TrackOutput``.
+    ``forward(prev, next, keypoints, weights, predicted=None, prev_pyramid=None, next_pyramid=None) -> TrackOutput``.
 
     >>> img = torch.rand(1, 1, 48, 64)
     >>> Tracker(levels=2)(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1)).keypoints.shape
@@ -647,11 +810,13 @@ class Tracker(torch.nn.Module):
         soft: bool = False,
         temperature: float = 0.02,
         lk_iters: int = 1,
+        predicted_radius: int | None = 2,
     ) -> None:
         super().__init__()
         _check_track_settings(
             patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters
         )
+        _check_predicted_radius(predicted_radius)
         self.patch_size = patch_size
         self.search_radius = search_radius
         self.refine_radius = refine_radius
@@ -664,6 +829,7 @@ class Tracker(torch.nn.Module):
         self.soft = soft
         self.temperature = temperature
         self.lk_iters = lk_iters
+        self.predicted_radius = predicted_radius
 
     def forward(
         self,
@@ -672,6 +838,8 @@ class Tracker(torch.nn.Module):
         keypoints: torch.Tensor,
         weights: torch.Tensor,
         predicted: torch.Tensor | None = None,
+        prev_pyramid: list[torch.Tensor] | None = None,
+        next_pyramid: list[torch.Tensor] | None = None,
     ) -> TrackOutput:
         return track(
             prev,
@@ -691,6 +859,9 @@ class Tracker(torch.nn.Module):
             soft=self.soft,
             temperature=self.temperature,
             lk_iters=self.lk_iters,
+            predicted_radius=self.predicted_radius,
+            prev_pyramid=prev_pyramid,
+            next_pyramid=next_pyramid,
         )
 
     def extra_repr(self) -> str:

@@ -321,6 +321,15 @@ def test_bad_input(scene):
         track(img, img, kp, w, cost="census")
     with pytest.raises(ValueRangeError, match="levels"):
         Tracker(levels=0)
+    with pytest.raises(ValueRangeError, match="predicted_radius"):
+        track(img, img, kp, w, predicted=kp, predicted_radius=0)
+    with pytest.raises(ValueRangeError, match="predicted_radius"):
+        Tracker(predicted_radius=1.5)
+    pyr = build_pyramid(img, 3)
+    with pytest.raises(ValueRangeError, match="prev_pyramid"):
+        track(img, img, kp, w, prev_pyramid=pyr[:2])
+    with pytest.raises(ShapeError, match=r"next_pyramid\[1\]"):
+        track(img, img, kp, w, next_pyramid=[pyr[0], pyr[2], pyr[2]])
 
 
 def test_rendered_sequence_against_true_flow():
@@ -366,3 +375,70 @@ def test_no_features_is_not_an_error():
     img = torch.rand(2, 1, 40, 50)
     out = track(img, img, torch.zeros(2, 0, 2), torch.zeros(2, 0))
     assert all(t.shape[:2] == (2, 0) for t in out)
+
+
+def test_prediction_first_keeps_the_full_reach(scene):
+    # Most predictions within a pixel, some 12-20 px off (as where a feature's depth is
+    # unknown): the level-0 search around the prediction finds the first, the coarse-to-fine
+    # second pass the others, and the result matches the full search everywhere.
+    img, kp, w = scene
+    nxt, m = warp(img, 2.6, -1.3)
+    truth = apply(m, kp)
+    g = torch.Generator().manual_seed(3)
+    predicted = truth + 0.5 * torch.randn(truth.shape, generator=g)
+    far = torch.arange(kp.shape[1]) % 5 == 0
+    predicted[0, far] = kp[0, far] - torch.tensor([10.0, -8.0])  # 12-20 px from the truth
+    fast = track(img, nxt, kp, w, predicted=predicted)
+    full = track(img, nxt, kp, w, predicted=predicted, predicted_radius=None)
+    right = ((fast.keypoints - truth).norm(dim=-1) < 0.2) & (fast.weights > 0)
+    assert right.sum() >= 0.9 * w.sum()
+    assert right[0, far].sum() >= 0.85 * far.sum()
+    both = (fast.weights > 0) & (full.weights > 0)
+    assert both.sum() >= 0.95 * w.sum()
+    torch.testing.assert_close(fast.keypoints[both], full.keypoints[both], atol=1e-4, rtol=0)
+    torch.testing.assert_close(fast.score[both], full.score[both], atol=1e-5, rtol=0)
+
+
+def test_given_pyramids_give_the_same_result(scene):
+    img, kp, w = scene
+    nxt, m = warp(img, -3.2, 1.7)
+    predicted = apply(m, kp)
+    out = track(img, nxt, kp, w, predicted=predicted)
+    # Deeper pyramids than needed are fine: the first `levels` levels are used.
+    given = track(
+        img, nxt, kp, w, predicted=predicted, prev_pyramid=build_pyramid(img, 4), next_pyramid=build_pyramid(nxt, 3)
+    )
+    for a, b in zip(out, given, strict=True):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    module = Tracker()(img, nxt, kp, w, predicted=predicted, next_pyramid=build_pyramid(nxt, 3))
+    torch.testing.assert_close(module.keypoints, out.keypoints, atol=0, rtol=0)
+
+
+def test_empty_slots_are_skipped_and_do_not_change_live_ones(scene):
+    # Live features interleaved with empty slots (different counts per batch item) are
+    # tracked exactly as the live ones alone; empty slots come back unchanged.
+    img, kp, w = scene
+    nxt, m = warp(img, 1.4, 0.6)
+    predicted = apply(m, kp)
+    n = kp.shape[1]
+    w2 = w.clone()
+    w2[0, torch.arange(n) % 3 == 1] = 0
+    w3 = w.clone()
+    w3[0, : n // 2] = 0
+    batch = track(
+        img.expand(2, -1, -1, -1),
+        nxt.expand(2, -1, -1, -1),
+        kp.expand(2, -1, -1),
+        torch.cat([w2, w3]),
+        predicted=predicted.expand(2, -1, -1),
+    )
+    for b, wb in enumerate((w2, w3)):
+        live = wb[0] > 0
+        alone = track(img, nxt, kp[:, live], wb[:, live], predicted=predicted[:, live])
+        for field_b, field_alone in zip(batch, alone, strict=True):
+            torch.testing.assert_close(field_b[b, live], field_alone[0], atol=1e-5, rtol=0)
+        assert (batch.weights[b, ~live] == 0).all() and (batch.score[b, ~live] == 0).all()
+        torch.testing.assert_close(batch.keypoints[b, ~live], kp[0, ~live], atol=0, rtol=0)
+    nothing = track(img, nxt, kp, torch.zeros_like(w), predicted=predicted)
+    assert (nothing.weights == 0).all()
+    torch.testing.assert_close(nothing.keypoints, kp, atol=0, rtol=0)
