@@ -15,12 +15,13 @@ The disparity axis is reversed as in :mod:`egorefine.stereo.cost` (index ``j`` i
 from __future__ import annotations
 
 import math
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import torch
 import torch.nn.functional as F
 
-from .cost import _shifted, prefilter_xsobel
+from .cost import prefilter_xsobel
 
 __all__ = ["int_scale", "match_sad_int", "INVALID_VARIANCE"]
 
@@ -31,11 +32,12 @@ _INVALID = 32767
 # where the matcher gives no measurement, and the floor of an integer-rounded match
 INVALID_VARIANCE = 1.0e4
 _QUANTISATION_VARIANCE = 1.0 / 12.0
-# box sums of a strip: ~4 MB of int16; raw costs of a chunk of disparities: ~0.5 MB (measured best of
-# 2**19..2**23 and 2**16..2**19 at 640x480 and 64 / 128 disparities)
-_STRIP_ELEMENTS = 1 << 21
-_CHUNK_ELEMENTS = 1 << 18
-_MIN_ROWS = 8  # at least this many output rows per strip (the 2r halo rows are computed twice)
+# a band's cost plane (B * rows * padded width): ~130 k int16 elements, large enough that an op's fixed
+# cost (~3 us) is small beside its work, small enough that a plane and the band's running minima stay
+# in cache; a band's stored volume (planes * plane) at most ~8 M elements (16 MB per worker)
+_BAND_ELEMENTS = 1 << 16
+_VOLUME_ELEMENTS = 1 << 23
+_MIN_ROWS = 8  # at least this many output rows per band (the 2r halo rows of raw costs are computed twice)
 
 
 def int_scale(block_size: int, cap: float) -> int:
@@ -93,6 +95,12 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     (up to its float rounding; a right-view tie within ``lr_threshold`` of the left winner passes
     the left-right check here).
 
+    The image is cut into bands of rows. A band's cost volume is built one disparity plane at a
+    time (each plane small enough to stay in cache) and stored; while a plane is in cache it
+    updates the running minimum, the index of its first occurrence and the right view's minimum.
+    The winner's neighbours (sub-pixel fit, left-right check) are then gathered from the stored
+    volume and the runner-up (uniqueness) is one reduction over it.
+
     Args:
         left, right: ``(B, 1, H, W)`` grey float images (no gradient needed).
         max_d, min_d, block, cap: search range, odd window size, prefilter clip level.
@@ -107,47 +115,46 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     b, _, h, w = left.shape
     r = block // 2
     num = max_d - min_d
-    bits = max(1, (num - 1).bit_length())
-    lq = _quantise(left, cap, scale, (r, r, r, r))[1]
-    rq = _quantise(right, cap, scale, (r + max_d, r, r, r))[1]
     dev = left.device
-    rows = max(_MIN_ROWS, _STRIP_ELEMENTS // max(1, b * num * (w + 2 * r)) - 2 * r)
-    rows = min(h, rows)
-    wp = w + 2 * r
-    # raw costs and their vertical sums are built for a chunk of disparities at a time (cache-sized);
-    # only the box sums of the strip hold every disparity
-    chunk = max(1, min(num, _CHUNK_ELEMENTS // max(1, b * (rows + 2 * r) * wp)))
-    # box sums with max_d extra columns of _INVALID for the right view's diagonal
-    # and lr guard planes of _INVALID on both ends of the disparity axis (candidates beyond the range)
+    # the left-right check reads the stored costs of disparities d +- guard at columns x -+ guard:
+    # guard planes and columns of _INVALID around the real ones (one plane at least: the sub-pixel
+    # neighbours of the range's end planes read a guard plane)
     guard = min(lr_threshold, num - 1) if lr_check else 0
-    box_shape = (b, num + 2 * guard, rows, w + max_d)
-    # index codes min(cost - min, 1) * 2**bits + j: amin gives the lowest index of the minimum
-    # (``amin`` over dim 1 is vectorised; ``argmin`` there, and comparisons to bool, are several times slower)
-    jvec = torch.arange(num, dtype=torch.int16, device=dev).view(1, num, 1, 1)
-    band = min(max_d, w)
-    d_col = (max_d - 1 - torch.arange(num, device=dev)).view(1, num, 1, 1)
-    # _INVALID where x - d < 0, else 0: applied with maximum (int16, vectorised; masked_fill is not)
-    out_of_view = ((torch.arange(band, device=dev).view(1, 1, 1, band) < d_col) * _INVALID).to(torch.int16)
+    gp = max(1, guard)
+    extra = max(0, guard - r)  # padding columns beyond the window's, so that a row holds the guard columns
+    pad = r + extra
+    s = w + 2 * pad  # row stride of every plane buffer (the raw costs' padded width)
+    shift = guard - extra  # a plane's box sum at flat position i lands at i + shift in the store
+    pads = ((pad, pad, r, r), (pad + max_d, pad, r, r))  # the right image: max_d more columns on the left
+    planes = num + 2 * gp
+    threads = torch.get_num_threads()
+    rows = max(_MIN_ROWS, min(_BAND_ELEMENTS // max(1, b * s), _VOLUME_ELEMENTS // max(1, b * planes * s)))
+    bands = -(-h // rows)
+    workers = min(threads, bands) if dev.type == "cpu" else 1
+    if workers > 1:
+        bands = -(-bands // workers) * workers  # as many bands per worker
+    rows = -(-h // bands)
+    half = r  # pairs of columns per window beside its first column: box_k[x] = x[x] + sum_i p[x + 1 + 2 i]
     x_idx = torch.arange(w, device=dev).view(1, 1, 1, w)
-    mask = (1 << bits) - 1
-    # flat offsets into box_buf (contiguous) of batch item, first real plane, row and column
-    sw, sh = 1, w + max_d
-    sj = rows * sh
-    sb = (num + 2 * guard) * sj
-    base = (torch.arange(b, device=dev).view(b, 1, 1, 1) * sb + guard * sj
-            + torch.arange(rows, device=dev).view(1, 1, rows, 1) * sh + x_idx * sw)
-
-    def reuse(buffer: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
-        """A contiguous ``shape`` tensor in the storage of ``buffer`` (whose content is no longer needed):
-        reusing the strip buffers keeps the working set in cache."""
-        return buffer.view(-1)[: math.prod(shape)].view(shape)
-
-    def argmin(vol: torch.Tensor, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Minimum over dim 1 and its lowest index."""
-        low = vol.amin(dim=1, keepdim=True)
-        c = torch.sub(vol, low, out=code).clamp_max_(1)
-        c = torch.add(jvec, c, alpha=1 << bits, out=c)
-        return low, (c.amin(dim=1, keepdim=True) & mask).long()
+    # flat buffer offsets: volume (B, planes, rows, s), then right view minima (B, rows, max_d + w)
+    s_p = rows * s
+    s_b = planes * s_p
+    vol_size = b * s_b
+    y_idx = torch.arange(rows, device=dev).view(1, rows, 1)
+    b_idx = torch.arange(b, device=dev).view(b, 1, 1)
+    at_winner = b_idx * s_b + gp * s_p + y_idx * s + guard + x_idx.view(1, 1, w)  # plane j = 0 at x
+    # gathered per pixel, at j = winner: planes j -+ 1 at x (sub-pixel fit), plane j at x (the winner;
+    # the uniqueness check knocks these three out), plane j + dj at column x - dj (left-right check)
+    # and the right view's minimum at x - d = x - (max_d - 1 - j)
+    parts = [at_winner - s_p, at_winner + s_p, at_winner]
+    parts += [at_winner + dj * (s_p - 1) for dj in range(-guard, guard + 1) if dj]
+    steps_list = [s_p] * len(parts)
+    if lr_check:
+        parts.append(vol_size + b_idx * (rows * (max_d + w)) + y_idx * (max_d + w) + x_idx.view(1, 1, w) + 1)
+        steps_list.append(1)
+    base = torch.stack(parts, 1).to(torch.int32)  # (B, K, rows, W)
+    steps = torch.tensor(steps_list, dtype=torch.int32, device=dev).view(1, -1, 1, 1)
+    j_values = torch.arange(num, dtype=torch.int16, device=dev).unbind(0)  # 0-d tensors: cheaper to pass than ints
 
     dtype = left.dtype
     unit = 1.0 / (255.0 * scale)
@@ -158,99 +165,162 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     # texture check in integers: window sum of |x-Sobel| (quantised, replicate borders) against the
     # threshold on the window mean; as exact as the costs
     c_level = round(255.0 * scale * cap)
-    t_need = opts["texture_threshold"] * area * 255.0 * scale
-    def run(starts: list[int]) -> None:
-        """Match the strips starting at rows ``starts`` with this call's own buffers."""
-        raw = torch.empty((b, chunk, rows + 2 * r, wp), dtype=torch.int16, device=dev)
-        vert = torch.empty((b, chunk, rows, wp), dtype=torch.int16, device=dev)
-        code_buf = torch.empty((b, num, rows, w), dtype=torch.int16, device=dev)
-        box_buf = torch.full(box_shape, _INVALID, dtype=torch.int16, device=dev)
-        t_abs = torch.empty((b, 1, rows + 2 * r, wp), dtype=torch.int16, device=dev)
-        t_vert = torch.empty((b, 1, rows, wp), dtype=torch.int16, device=dev)
+    # sum >= threshold, the threshold rounded to float32 as in the float comparison, then up to an integer
+    t_need = float(torch.tensor(opts["texture_threshold"] * area * 255.0 * scale, dtype=torch.float32))
+    t_need = min(max(math.ceil(t_need), -_INVALID), _INVALID)
+
+    def run(next_band) -> None:
+        """Match the bands handed out by ``next_band`` (None when done) with this call's own buffers."""
+        raw = torch.empty((b, rows + 2 * r, s), dtype=torch.int16, device=dev)
+        vert = torch.empty((b, rows * s), dtype=torch.int16, device=dev)
+        pairs = torch.empty((b, rows * s), dtype=torch.int16, device=dev)
+        # one flat buffer: the band's volume, then the right view's minima with max_d columns of left padding
+        # (read at x - d < 0 by pixels that are invalid anyway)
+        buf = torch.full((vol_size + b * rows * (max_d + w),), _INVALID, dtype=torch.int16, device=dev)
+        vol = buf[:vol_size].view(b, planes, rows, s)
+        flat = vol.view(b, planes, rows * s)
+        right_min_all = buf[vol_size:].view(b, rows, max_d + w)[..., max_d:]
+        small = torch.empty((3, b, rows, w), dtype=torch.int16, device=dev)
+        index = torch.empty((b * len(steps_list) * rows * w,), dtype=torch.int32, device=dev)
+        t_abs = torch.empty((b, 1, rows + 2 * r, s), dtype=torch.int16, device=dev)
+        t_vert = torch.empty((b, 1, rows, s), dtype=torch.int16, device=dev)
         t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
 
         def texture_ok(y0: int, n: int) -> torch.Tensor:
-            a = torch.sub(lq[..., y0 : y0 + n + 2 * r, :], c_level, out=t_abs[:, :, : n + 2 * r]).abs_()
-            v = _box_rows(a, block, t_vert[:, :, :n])
-            return _box_cols(v, block, t_sum[:, :, :n], t_pairs[:, :, :n]) >= t_need
+            a = torch.sub(lq[..., y0 : y0 + n + 2 * r, extra : extra + w + 2 * r], c_level,
+                          out=t_abs[:, :, : n + 2 * r, : w + 2 * r]).abs_()
+            v = _box_rows(a, block, t_vert[:, :, :n, : w + 2 * r])
+            return _box_cols(v, block, t_sum[:, :, :n], t_pairs[:, :, :n, : w + 2 * r]) >= t_need
 
-        for y0 in starts:
+        cache: dict[int, tuple] = {}
+
+        def views(n: int) -> tuple:
+            """Views of the buffers for a band of ``n`` rows, made once: a view costs as much Python time as an op."""
+            if n not in cache:
+                size = n * s
+                length = size - 2 * r  # box sums of a flat plane (the last 2r positions have no full window)
+                raw_n = raw[:, : n + 2 * r]
+                vert_n = vert[:, :size]
+                pairs_n = pairs[:, : size - 1]
+                running = (*small[..., :n, :].unbind(0), right_min_all[:, :n])  # best, its index, mask, right min
+                costs = vol[:, gp : gp + num, :n, guard : guard + w].unbind(1)
+                ds = [max_d - 1 - j for j in range(num)]
+                right_min = running[3]
+                planes_ = [(dst, cost, cost[..., :d] if d > 0 else None,
+                            (right_min[..., : w - d], cost[..., d:]) if lr_check and d < w else None, jt)
+                           for dst, cost, d, jt in zip(flat[:, gp : gp + num, shift : shift + length].unbind(1),
+                                                       costs, ds, j_values, strict=True)]
+                cache[n] = (raw_n, vert_n.view(b, n, s), vert_n[:, :-1], vert_n[:, 1:], vert_n[:, :length], pairs_n,
+                            raw_n.as_strided((b, n, block, s), (raw_n.stride(0), s, s, 1)),
+                            pairs_n.as_strided((b, half, length), (pairs_n.stride(0), 2, 1), 1), running, planes_,
+                            index[: b * len(steps_list) * n * w].view(b, -1, n, w))
+            return cache[n]
+
+        while (y0 := next_band()) is not None:
             y1 = min(h, y0 + rows)
             n = y1 - y0
-            lv = lq[..., y0 : y1 + 2 * r, :]
-            rv = _shifted(rq, y0, n + 2 * r, wp, num)
-            box_all = box_buf[:, guard : guard + num, :n]
-            for c0 in range(0, num, chunk):
-                m = min(num, c0 + chunk) - c0
-                rw = torch.sub(lv, rv[:, c0 : c0 + m], out=reuse(raw, (b, m, n + 2 * r, wp))).abs_()
-                vsum = _box_rows(rw, block, reuse(vert, (b, m, n, wp)))
-                _box_cols(vsum, block, box_all[:, c0 : c0 + m, :, :w], reuse(raw, (b, m, n, wp)))
-            hsum = box_all[..., :w]
-            torch.maximum(hsum[..., :band], out_of_view, out=hsum[..., :band])
-            best, j = argmin(hsum, code_buf[:, :, :n])
-            jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
-            c_plus, c_minus = torch.gather(hsum, 1, jm), torch.gather(hsum, 1, jp)  # reversed: j - 1 is d + 1
-            ok = (best < _INVALID) & (j > 0) & (c_plus < _INVALID)
-            inner = ok & (j < num - 1) & (c_minus < _INVALID)  # interior minimum: the sub-pixel fit is defined
+            (raw_n, vert3, vert_lo, vert_hi, vert_head, pairs_n, rows_view, col_windows, running, planes_,
+             index_n) = views(n)
+            best, jbest, mask, right_min = running
+            best.fill_(_INVALID)
+            jbest.zero_()
+            right_min.fill_(_INVALID)
+            lv = lq[:, 0, y0 : y1 + 2 * r]
+            # the right image shifted by each disparity (plane j: d = max_d - 1 - j), as views
+            shifted = rq[:, 0, y0 : y1 + 2 * r].unfold(2, s, 1)[:, :, 1 : 1 + num].unbind(2)
+            for rv, (dst, cost, out_of_view, lr_pair, jt) in zip(shifted, planes_, strict=True):
+                # raw costs |L - R_d| and their vertical then horizontal window sums, stored as plane j
+                torch.sub(lv, rv, out=raw_n).abs_()
+                torch.sum(rows_view, dim=2, dtype=torch.int16, out=vert3)
+                if half:
+                    torch.add(vert_lo, vert_hi, out=pairs_n)
+                    torch.sum(col_windows, dim=1, dtype=torch.int16, out=dst)
+                    dst.add_(vert_head)
+                else:
+                    dst.copy_(vert_head)
+                if out_of_view is not None:
+                    out_of_view.fill_(_INVALID)  # x - d < 0: out of the right view
+                # running minimum and the index of its first occurrence (lowest j: largest disparity on ties)
+                torch.lt(cost, best, out=mask)
+                torch.minimum(best, cost, out=best)
+                torch.maximum(jbest, torch.mul(mask, jt, out=mask), out=jbest)
+                if lr_pair is not None:
+                    # the right view's minimum at xr over d: cost_right(xr, d) = cost_left(xr + d, d)
+                    torch.minimum(*lr_pair, out=lr_pair[0])
+            if guard:
+                vol[:, gp : gp + num, :n, :guard].fill_(_INVALID)
+                vol[:, gp : gp + num, :n, guard + w : 2 * guard + w].fill_(_INVALID)
+            bst = best.unsqueeze(1)
+            jb = jbest.unsqueeze(1)
+            # one gather from the flat buffer: the costs around the winner and the right view's minimum at x - d
+            at = torch.mul(jb, steps, out=index_n)
+            at += base[:, :, :n]
+            vals = buf.index_select(0, at.view(-1)).view(b, -1, n, w)
+            c_plus, c_minus = vals[:, :1], vals[:, 1:2]  # reversed: j - 1 is d + 1
+            hi = torch.maximum(bst, c_plus)
+            ok = hi < _INVALID  # (a guard plane reads _INVALID: j > 0)
+            inner = torch.maximum(hi, c_minus) < _INVALID  # interior minimum: the sub-pixel fit is defined
             if min_d > 0:
-                ok &= j < num - 1
+                ok &= jb < num - 1
             if lr_check:
                 # left-right check (right view from the same volume: cost_right(xr, d) = cost_left(xr + d, d)):
-                # the right view's minimum at xr = x - d must be reached by a disparity within lr_threshold of d
-                diag = box_all.as_strided((b, num, n, w), (sb, sj - sw, sh, sw),
-                                          box_all.storage_offset() + (max_d - 1) * sw)
-                right_min = diag.amin(dim=1, keepdim=True)
-                xr = (x_idx - (max_d - 1 - j)).clamp_min(0)  # x - d (>= 0 where ok)
-                # cost_right(x - d, d') = cost_left(x - d + d', d') lies at plane j' = j + dj, column x - dj;
-                # d' outside the range reads a guard plane. Indices stay in the buffer (dj = -guard needs j >= 0)
-                flat = base[:, :, :n] + j * sj
-                near = torch.take(box_buf, flat)
-                for dj in range(-guard, guard + 1):
-                    if dj:
-                        near = torch.minimum(near, torch.take(box_buf, flat + dj * (sj - sw)))
-                ok &= near <= right_min.gather(3, xr)
+                # the right view's minimum at xr = x - d must be reached by a disparity within lr_threshold
+                # of d, i.e. by cost_right(x - d, d + dj) = cost_left(x + dj, d + dj) for some |dj| <= guard
+                ok &= vals[:, 2 : 3 + 2 * guard].amin(dim=1, keepdim=True) <= vals[:, -1:]
             if uniqueness_ratio > 0:
-                inv = torch.full_like(best, _INVALID)
-                for nb in (jm, j, jp):
-                    hsum.scatter_(1, nb, inv)
-                second = hsum.amin(dim=1, keepdim=True).float()
-                ok &= second > best.float() * (1 + uniqueness_ratio)
+                # runner-up beyond +-1 px of the winner: knock out the winner and its neighbours, then one minimum
+                buf.index_fill_(0, at[:, :3].reshape(-1).long(), _INVALID)
+                second = vol[:, gp : gp + num, :n, guard : guard + w].amin(dim=1, keepdim=True).float()
+                ok &= second > bst.float() * (1 + uniqueness_ratio)
             ok &= texture_ok(y0, n)
             valid[..., y0:y1, :] = ok
-            _tail(j, best, c_plus, c_minus, ok, inner, max_d, unit, area, opts,
+            _tail(jb, vals[:, :3], ok, inner, max_d, unit, area, opts,
                   (disparity[..., y0:y1, :], variance[..., y0:y1, :]))
 
-    starts = list(range(0, h, rows))
-    threads = torch.get_num_threads()
-    workers = min(threads, len(starts))
-    if dev.type != "cpu" or workers < 2:
-        run(starts)
+    starts = iter(range(0, h, rows))
+    lock = threading.Lock()
+
+    def next_band() -> int | None:
+        with lock:
+            return next(starts, None)
+
+    if workers < 2:
+        lq, rq = (_quantise(image, cap, scale, p)[1] for image, p in zip((left, right), pads, strict=True))
+        run(next_band)
         return disparity, valid, variance
-    # CPU with several threads: strips in parallel, each worker single-threaded. Intra-op threading of
-    # the many mid-sized strip ops costs more in thread wake-ups than it gains (measured 2x slower with
-    # 2 threads); the ops release the GIL, so Python threads run strips concurrently.
-    def worker(k: int) -> None:
+    # CPU with several threads: bands in parallel, each worker single-threaded and taking the next band
+    # when done. Intra-op threading of the many mid-sized ops costs more in thread wake-ups than it gains
+    # (measured 2x slower with 2 threads); the ops release the GIL, so Python threads run bands concurrently.
+    def quantised(image: torch.Tensor, p: tuple[int, int, int, int]) -> torch.Tensor:
         torch.set_num_threads(1)
-        run(starts[k::workers])
+        return _quantise(image, cap, scale, p)[1]
+
+    def worker(_: int) -> None:
+        torch.set_num_threads(1)
+        run(next_band)
 
     try:
         with ThreadPoolExecutor(workers) as pool:
+            lq, rq = (f.result() for f in [pool.submit(quantised, image, p)
+                                           for image, p in zip((left, right), pads, strict=True)])
             list(pool.map(worker, range(workers)))
     finally:
         torch.set_num_threads(threads)
     return disparity, valid, variance
 
 
-def _tail(j: torch.Tensor, best: torch.Tensor, c_plus: torch.Tensor, c_minus: torch.Tensor, valid: torch.Tensor,
-          inner: torch.Tensor, max_d: int, unit: float, area: float, opts: dict, out: tuple[torch.Tensor, ...]) -> None:
-    """Sub-pixel fit and variance of one strip (the formulas of ``matching._select``), written into ``out``.
+def _tail(j: torch.Tensor, costs: torch.Tensor, valid: torch.Tensor, inner: torch.Tensor, max_d: int, unit: float,
+          area: float, opts: dict, out: tuple[torch.Tensor, ...]) -> None:
+    """Sub-pixel fit and variance of one band (the formulas of ``matching._select``), written into ``out``.
 
-    0/1 float factors replace torch.where (where and masked_fill on bool masks are ~20x slower than
-    arithmetic on CPU); strip-sized temporaries stay in cache.
+    ``costs`` ``(B, 3, n, W)``: the integer costs at the winner's d + 1, d - 1 and d. 0/1 float factors
+    replace torch.where (where and masked_fill on bool masks are ~20x slower than arithmetic on CPU);
+    band-sized temporaries stay in cache.
     """
     disparity, variance = out
     dtype = disparity.dtype
-    c0, cp, cm = (c.to(dtype).mul_(unit) for c in (best, c_plus, c_minus))
+    f = costs.to(dtype).mul_(unit)
+    cp, cm, c0 = f[:, 0:1], f[:, 1:2], f[:, 2:3]
     inner = inner.view(torch.uint8).to(dtype)
     keep = valid.view(torch.uint8).to(dtype)
     curvature = cm - 2 * c0 + cp

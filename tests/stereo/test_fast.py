@@ -89,16 +89,100 @@ def test_integer_path_close_to_float_path_on_float_images(pair):
     assert abs(epe(ref.disparity, gt, ref.valid & scored) - epe(new.disparity, gt, new.valid & scored)) < 0.01
 
 
-def test_strips_and_batch_do_not_change_the_result(pair, monkeypatch):
+def test_bands_and_batch_do_not_change_the_result(pair, monkeypatch):
     left, right, _ = pair
     ref = match_stereo(left, right, 16)
-    monkeypatch.setattr(fast, "_STRIP_ELEMENTS", 1)  # _MIN_ROWS rows per strip
-    # 3 disparities per raw-cost chunk (B=2, 8 + 8 halo rows, 80 + 8 columns; 16 = 5 * 3 + 1)
-    monkeypatch.setattr(fast, "_CHUNK_ELEMENTS", 3 * 2 * 16 * 88)
+    monkeypatch.setattr(fast, "_BAND_ELEMENTS", 1)  # _MIN_ROWS rows per band (48 rows: 6 bands)
     rows = match_stereo(left, right, 16)
     assert torch.equal(ref.valid, rows.valid) and torch.equal(ref.disparity, rows.disparity)
+    assert torch.equal(ref.variance, rows.variance)
+    monkeypatch.setattr(fast, "_BAND_ELEMENTS", 2 * 11 * 88)  # 11 rows per band: a shorter last band
+    odd = match_stereo(left, right, 16)
+    assert torch.equal(ref.valid, odd.valid) and torch.equal(ref.disparity, odd.disparity)
     one = match_stereo(left[1:], right[1:], 16)
     assert torch.equal(ref.valid[1:], one.valid) and torch.equal(ref.disparity[1:], one.disparity)
+
+
+def _reference(left, right, max_d, min_d=0, block=9, lr_check=True, lr_threshold=1, uniqueness_ratio=0.15,
+               texture_threshold=0.004, subpixel=True, subpixel_fit="equiangular"):
+    """The integer matcher's decisions written plainly over the whole volume (int32, no bands, no buffers)."""
+    cap = 31.0 / 255.0
+    scale = fast.int_scale(block, cap)
+    r = block // 2
+    num = max_d - min_d
+    b, _, h, w = left.shape
+    inv = fast._INVALID
+    lq = fast._quantise(left, cap, scale, (r, r, r, r))[1].int()
+    rq = fast._quantise(right, cap, scale, (r + max_d, r, r, r))[1].int()
+    ds = [max_d - 1 - j for j in range(num)]
+    planes = []
+    for d in ds:
+        raw = (lq - rq[..., max_d - d : max_d - d + w + 2 * r]).abs()
+        box = raw.unfold(2, block, 1).sum(-1).unfold(3, block, 1).sum(-1)[:, 0]  # (B, H, W)
+        box[..., :d] = inv  # x - d < 0
+        planes.append(box)
+    vol = torch.stack(planes, 1)  # (B, num, H, W), index j: disparity max_d - 1 - j
+    best = vol.amin(1, keepdim=True)
+    j = (vol == best).int().argmax(1, keepdim=True)  # first (lowest) index of the minimum
+    jm, jp = (j - 1).clamp_min(0), (j + 1).clamp_max(num - 1)
+    c_plus, c_minus = vol.gather(1, jm), vol.gather(1, jp)
+    ok = (best < inv) & (j > 0) & (c_plus < inv)
+    inner = ok & (j < num - 1) & (c_minus < inv)
+    if min_d > 0:
+        ok &= j < num - 1
+    x = torch.arange(w).view(1, 1, 1, w)
+    if lr_check:
+        guard = min(lr_threshold, num - 1)
+        right_min = torch.full((b, 1, h, w), inv, dtype=vol.dtype)
+        for jj, d in enumerate(ds):
+            right_min[..., : w - d] = torch.minimum(right_min[..., : w - d], vol[:, jj : jj + 1, :, d:])
+        near = best.clone()
+        for dj in range(-guard, guard + 1):
+            # cost_right(x - d, d - dj) = vol[j + dj] at column x - dj (_INVALID outside the volume)
+            moved = torch.full_like(vol, inv)
+            if dj >= 0:
+                moved[..., dj:] = vol[..., : w - dj]
+            else:
+                moved[..., :dj] = vol[..., -dj:]
+            jn = j + dj
+            inside = (jn >= 0) & (jn < num)
+            near = torch.minimum(near, torch.where(inside, moved.gather(1, jn.clamp(0, num - 1)), inv))
+        xr = (x - (max_d - 1 - j)).clamp_min(0)
+        ok &= near <= right_min.gather(3, xr)
+    if uniqueness_ratio > 0:
+        knocked = vol.scatter(1, torch.cat([jm, j, jp], 1), inv)
+        ok &= knocked.amin(1, keepdim=True).float() > best.float() * (1 + uniqueness_ratio)
+    c_level = round(255.0 * scale * cap)
+    texture = (lq - c_level).abs().unfold(2, block, 1).sum(-1).unfold(3, block, 1).sum(-1)
+    ok &= texture.to(torch.int16) >= texture_threshold * block * block * 255.0 * scale
+    opts = {"subpixel": subpixel, "subpixel_fit": subpixel_fit, "cost_floor": 1e-3}
+    disparity, variance = torch.empty(b, 1, h, w), torch.empty(b, 1, h, w)
+    costs = torch.cat([c_plus, c_minus, best], 1).to(torch.int16)
+    fast._tail(j, costs, ok, inner, max_d, 1.0 / (255.0 * scale), float(block * block), opts, (disparity, variance))
+    return disparity, ok, variance
+
+
+@pytest.mark.parametrize("kw", [
+    {}, {"block": 5}, {"block": 3, "lr_threshold": 3}, {"min_d": 2}, {"lr_check": False}, {"uniqueness_ratio": 0.0},
+    {"lr_threshold": 2, "subpixel_fit": "parabola"}, {"block": 1, "lr_threshold": 0},
+])
+def test_integer_path_equals_plain_reference(pair, kw, monkeypatch):
+    # bit for bit: bands, the stored volume, the running minimum and the gathers change nothing
+    left, right, _ = pair
+    left, right = _u8(left), _u8(right)
+    max_d = 16
+    ref = _reference(left, right, max_d, **kw)
+    opts = {"subpixel": True, "subpixel_fit": kw.get("subpixel_fit", "equiangular"),
+            "lr_check": kw.get("lr_check", True), "lr_threshold": kw.get("lr_threshold", 1),
+            "uniqueness_ratio": kw.get("uniqueness_ratio", 0.15), "cost_floor": 1e-3, "texture_threshold": 0.004}
+    block = kw.get("block", 9)
+    scale = fast.int_scale(block, 31.0 / 255.0)
+    monkeypatch.setattr(fast, "_BAND_ELEMENTS", 2 * 13 * 100)  # several bands, the last one shorter
+    out = fast.match_sad_int(left, right, max_d, kw.get("min_d", 0), block, 31.0 / 255.0, scale, opts)
+    assert ref[1].float().mean() > 0.05  # not a vacuous comparison (1x1 windows: ~9 % valid)
+    assert torch.equal(out[1], ref[1])
+    assert torch.equal(out[0], ref[0])
+    assert torch.equal(out[2], ref[2])
 
 
 def test_gradient_requests_take_the_float_path(pair):
@@ -119,7 +203,7 @@ def test_large_block_falls_back_to_the_float_path():
 def test_threaded_strips_equal_serial(pair, monkeypatch):
     # with several torch threads the strips run in a thread pool (one torch thread each)
     left, right, _ = pair
-    monkeypatch.setattr(fast, "_STRIP_ELEMENTS", 1)  # several strips per worker
+    monkeypatch.setattr(fast, "_BAND_ELEMENTS", 1)  # several bands per worker
     ref = match_stereo(left, right, 16)  # the stereo tests run torch single-threaded (conftest)
     torch.set_num_threads(2)
     try:
