@@ -31,6 +31,7 @@ __all__ = ["AVAILABLE", "census_sgm_select"]
 try:  # numba is a dependency, but keep the package importable (torch path) without it
     import numba
     from llvmlite import ir as _llvm_ir
+    from numba.core import types as _types
     from numba.extending import intrinsic
 except ImportError:  # pragma: no cover - exercised by the fallback test through the flag
     numba = None
@@ -66,7 +67,32 @@ if AVAILABLE:
 
         return sig, codegen
 
-    del _llvm_ir
+    @intrinsic
+    def _float_from_bits(typingctx, x):
+        """The float32 whose bit pattern is the (low 32 bits of the) integer ``x``."""
+        if not isinstance(x, _types.Integer):
+            return None
+        sig = _types.float32(x)
+
+        def codegen(context, builder, signature, args):
+            v = args[0]
+            if v.type.width != 32:
+                v = builder.trunc(v, _llvm_ir.IntType(32))
+            return builder.bitcast(v, _llvm_ir.FloatType())
+
+        return sig, codegen
+
+    @intrinsic
+    def _bits_of_float(typingctx, x):
+        """The int32 bit pattern of the float32 ``x``."""
+        if x != _types.float32:
+            return None
+        sig = _types.int32(x)
+
+        def codegen(context, builder, signature, args):
+            return builder.bitcast(args[0], _llvm_ir.IntType(32))
+
+        return sig, codegen
 
     @_jit
     def _census(padded, window, out):
@@ -113,9 +139,9 @@ if AVAILABLE:
         return a if a < b else b  # torch.minimum without NaNs; a plain select LLVM vectorises
 
     @_jit(inline="always")
-    def _step(prev, pp, c, cp, jlim, m, p1, p2, out, op, outi, scratch, scratchi):
+    def _step(prev, pp, c, cp, jlim, m, p1, p2, out, op):
         """One SGM step (sgm._step) from row ``pp`` of ``prev`` and row ``cp`` of the costs ``c`` into row
-        ``op`` of ``out`` (2-D arrays ``(N, D)``; ``outi`` is ``out`` viewed as int32):
+        ``op`` of ``out`` (2-D arrays ``(N, D)``):
         ``out[j] = (C[j] - m) + min(prev[j], m + P2, prev[j +- 1] + P1)``. Returns ``min_j out[j]``.
 
         ``c`` holds the integer window sums; ``C[j] = float32(c[j]) + INVALID_COST`` for ``j < jlim`` (out of
@@ -128,56 +154,48 @@ if AVAILABLE:
         big = np.float32(1.0e6)
         zero = np.float32(0.0)
         c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)
-        out[op, 0] = (c0 - m) + _min(_min(prev[pp, 0], mp2), prev[pp, 1] + p1)
+        v = (c0 - m) + _min(_min(prev[pp, 0], mp2), prev[pp, 1] + p1)
+        out[op, 0] = v
+        lo = _bits_of_float(v)
         for j in range(1, num - 1):
             best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
             cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-            out[op, j] = (cj - m) + best
+            v = (cj - m) + best
+            out[op, j] = v
+            lo = min(lo, _bits_of_float(v))
         j = num - 1
         cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-        out[op, j] = (cj - m) + _min(_min(prev[pp, j], mp2), prev[pp, j - 1] + p1)
-        lo = outi[op, 0]
-        for j in range(1, num):
-            lo = min(lo, outi[op, j])
-        scratchi[0] = lo
-        return scratch[0]
+        v = (cj - m) + _min(_min(prev[pp, j], mp2), prev[pp, j - 1] + p1)
+        out[op, j] = v
+        return _float_from_bits(min(lo, _bits_of_float(v)))
 
     @_jit(inline="always")
-    def _row_min(v, vi, p, scratch, scratchi):
-        lo = vi[p, 0]
-        for j in range(1, v.shape[1]):
-            lo = min(lo, vi[p, j])
-        scratchi[0] = lo
-        return scratch[0]
-
-    @_jit(inline="always")
-    def _start(c, cp, jlim, out, op, outi, scratch, scratchi):
+    def _start(c, cp, jlim, out, op):
         """A path's first pixel: ``out = C`` (see _step); returns its min."""
         for j in range(c.shape[1]):
             out[op, j] = np.float32(c[cp, j]) + (np.float32(1.0e6) if j < jlim else np.float32(0.0))
-        return _row_min(out, outi, op, scratch, scratchi)
+        lo = _bits_of_float(out[op, 0])
+        for j in range(1, c.shape[1]):
+            lo = min(lo, _bits_of_float(out[op, j]))
+        return _float_from_bits(lo)
 
     @_jit
-    def _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf, scratch):
+    def _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf):
         """``h2[y]`` = LR + RL (left-to-right plus right-to-left path costs, as sgm_aggregate adds them) of
         row ``y`` of the integer costs ``c2`` ``(H * W, D)`` (see _step). A path starts with L = C."""
-        h2i = h2.view(np.int32)
-        bufi = buf.view(np.int32)
-        scratchi = scratch.view(np.int32)
         base = y * w
-        m = _start(c2, base, max_d - 1, h2, base, h2i, scratch, scratchi)
+        m = _start(c2, base, max_d - 1, h2, base)
         for x in range(1, w):  # left to right, straight into h2
-            m = _step(h2, base + x - 1, c2, base + x, max_d - 1 - x, m, p1, p2, h2, base + x, h2i, scratch,
-                      scratchi)
+            m = _step(h2, base + x - 1, c2, base + x, max_d - 1 - x, m, p1, p2, h2, base + x)
         # right to left in a pair of row buffers, added
-        m = _start(c2, base + w - 1, max_d - w, buf, 0, bufi, scratch, scratchi)
+        m = _start(c2, base + w - 1, max_d - w, buf, 0)
         p = base + w - 1
         for j in range(c2.shape[1]):
             h2[p, j] += buf[0, j]
         k = 0
         for x in range(w - 2, -1, -1):
             p = base + x
-            m = _step(buf, k, c2, p, max_d - 1 - x, m, p1, p2, buf, 1 - k, bufi, scratch, scratchi)
+            m = _step(buf, k, c2, p, max_d - 1 - x, m, p1, p2, buf, 1 - k)
             k = 1 - k
             for j in range(c2.shape[1]):
                 h2[p, j] += buf[k, j]
@@ -198,7 +216,6 @@ if AVAILABLE:
         c2 = cost.reshape(h * w, num)
         h2 = horiz.reshape(h * w, num)
         buf = np.empty((2, num), dtype=np.float32)
-        scratch = np.zeros(1, dtype=np.float32)
         for i in range(k):  # rows y0 - r .. y0 + r (clamped)
             yy = min(max(y0 - r + i, 0), h - 1)
             _raw_row(cl, cr, yy, r, max_d, num, rpad, ring[i])
@@ -231,11 +248,11 @@ if AVAILABLE:
                     c2[p, j] = acc[j]
                 for j in range(num):
                     acc[j] -= colsum[x, j]
-            _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf, scratch)
+            _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf)
 
     @_jit
     def _select_pixel(codes, codef, num, max_d, bits, subpixel, parabola, uniqueness, floor, eps,
-                      min_disparity_positive, scratch, scratchi):
+                      min_disparity_positive):
         """matching._select for one pixel from its encoded costs ``codes`` (int32; ``codef``: the same as float32).
 
         Returns ``(j, disparity, ok, variance)``; ``ok`` without the left-right check.
@@ -266,17 +283,13 @@ if AVAILABLE:
             ok = ok and j < num - 1
         if uniqueness > 0 and ok:
             # best of the rest once the winner and its neighbours are knocked out (+inf when none is left)
-            keep_m, keep_j, keep_p = codes[jm], codes[j], codes[jp]
             inf = np.int32(0x7F800000)
-            codes[jm] = inf
-            codes[j] = inf
-            codes[jp] = inf
             second = inf
-            for i in range(num):  # one full-length loop (variable or masked ranges vectorise badly)
-                second = min(second, codes[i])
-            codes[jm], codes[j], codes[jp] = keep_m, keep_j, keep_p
-            scratchi[0] = second
-            ok = scratch[0] > c_best * np.float32(1.0 + uniqueness)
+            for i in range(num):  # full length, a select per entry: vectorised like the loops that wrote codes
+                second = min(second, inf if jm <= i and i <= jp else codes[i])
+            # float order = int order of the bits for non-negative floats (a round trip through memory
+            # here cost more than the whole check)
+            ok = second > _bits_of_float(c_best * np.float32(1.0 + uniqueness))
         kd = max(curvature, np.float32(0.0))
         q = (c_best + floor) / (kd + eps)
         variance = np.float32(1.0 / 12.0) + np.float32(0.25) * (q * q)
@@ -304,11 +317,8 @@ if AVAILABLE:
         # on either side of each path's row
         prev = np.zeros((ns * (n + 2), num), dtype=np.float32)
         cur = np.zeros((ns * (n + 2), num), dtype=np.float32)
-        previ, curi = prev.view(np.int32), cur.view(np.int32)
         mins = np.zeros(ns * (n + 2), dtype=np.float32)
         cmins = np.zeros(ns * (n + 2), dtype=np.float32)
-        scratch = np.zeros(1, dtype=np.float32)
-        scratchi = scratch.view(np.int32)
         agg = np.empty(num, dtype=np.float32)
         aggi = agg.view(np.int32)
         codes = np.empty(num, dtype=np.int32)
@@ -335,8 +345,7 @@ if AVAILABLE:
                         q = row + i + 1
                         x = x0 + i
                         p = y * w + x
-                        cmins[q] = _step(prev, src, c2, p, max_d - 1 - x, mins[src], p1, p2, cur, q, curi, scratch,
-                                         scratchi)
+                        cmins[q] = _step(prev, src, c2, p, max_d - 1 - x, mins[src], p1, p2, cur, q)
                         if not last:
                             for j in range(num):
                                 h2[p, j] += cur[q, j]
@@ -350,8 +359,7 @@ if AVAILABLE:
                             for j in range(num):
                                 codes[j] = (max(aggi[j], 0) & high) | j
                             jb, dsp, good, var = _select_pixel(codes, codef, num, max_d, bits, subpixel, parabola,
-                                                               uniqueness, floor, eps, min_disparity_positive,
-                                                               scratch, scratchi)
+                                                               uniqueness, floor, eps, min_disparity_positive)
                             jbest[y, x] = jb
                             disparity[y, x] = dsp
                             ok[y, x] = good
@@ -364,7 +372,6 @@ if AVAILABLE:
                                 for k in range(cs.shape[0]):
                                     rrow[k] = min(rrow[k], cs[k])
                 prev, cur = cur, prev
-                previ, curi = curi, previ
                 mins, cmins = cmins, mins
 
     @_jit
