@@ -157,12 +157,19 @@ if AVAILABLE:
         v = (c0 - m) + _min(_min(prev[pp, 0], mp2), prev[pp, 1] + p1)
         out[op, 0] = v
         lo = _bits_of_float(v)
-        for j in range(1, num - 1):
-            best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
-            cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-            v = (cj - m) + best
-            out[op, j] = v
-            lo = min(lo, _bits_of_float(v))
+        if jlim <= 1:  # no candidate out of view in the loop below: no penalty to add
+            for j in range(1, num - 1):
+                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
+                v = (np.float32(c[cp, j]) - m) + best
+                out[op, j] = v
+                lo = min(lo, _bits_of_float(v))
+        else:
+            for j in range(1, num - 1):
+                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
+                cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
+                v = (cj - m) + best
+                out[op, j] = v
+                lo = min(lo, _bits_of_float(v))
         j = num - 1
         cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
         v = (cj - m) + _min(_min(prev[pp, j], mp2), prev[pp, j - 1] + p1)
@@ -181,13 +188,21 @@ if AVAILABLE:
         out[op, 0] = v
         acc[ap, 0] += v
         lo = _bits_of_float(v)
-        for j in range(1, num - 1):
-            best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
-            cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-            v = (cj - m) + best
-            out[op, j] = v
-            acc[ap, j] += v
-            lo = min(lo, _bits_of_float(v))
+        if jlim <= 1:  # no candidate out of view in the loop below: no penalty to add
+            for j in range(1, num - 1):
+                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
+                v = (np.float32(c[cp, j]) - m) + best
+                out[op, j] = v
+                acc[ap, j] += v
+                lo = min(lo, _bits_of_float(v))
+        else:
+            for j in range(1, num - 1):
+                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
+                cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
+                v = (cj - m) + best
+                out[op, j] = v
+                acc[ap, j] += v
+                lo = min(lo, _bits_of_float(v))
         j = num - 1
         cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
         v = (cj - m) + _min(_min(prev[pp, j], mp2), prev[pp, j - 1] + p1)
@@ -213,7 +228,7 @@ if AVAILABLE:
         m = _start(c2, base, max_d - 1, h2, base)
         for x in range(1, w):  # left to right, straight into h2
             m = _step(h2, base + x - 1, c2, base + x, max_d - 1 - x, m, p1, p2, h2, base + x)
-        # right to left in a pair of row buffers, added
+        # right to left in a pair of row buffers, added to h2 (LR + RL) in the same pass
         m = _start(c2, base + w - 1, max_d - w, buf, 0)
         p = base + w - 1
         for j in range(c2.shape[1]):
@@ -221,10 +236,8 @@ if AVAILABLE:
         k = 0
         for x in range(w - 2, -1, -1):
             p = base + x
-            m = _step(buf, k, c2, p, max_d - 1 - x, m, p1, p2, buf, 1 - k)
+            m = _step_add(buf, k, c2, p, max_d - 1 - x, m, p1, p2, buf, 1 - k, h2, p)
             k = 1 - k
-            for j in range(c2.shape[1]):
-                h2[p, j] += buf[k, j]
 
     @_jit
     def _rows_pass(cl, cr, r, max_d, num, y0, y1, p1, p2, cost, horiz):
