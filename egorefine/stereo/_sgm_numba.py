@@ -115,24 +115,38 @@ if AVAILABLE:
                     k += 1
 
     @_jit
-    def _raw_row(cl, cr, yy, r, max_d, num, rpad, out):
-        """Hamming distances ``out[x', j]`` of (clamped) image row ``yy``, padded columns ``x' in [0, W + 2r)``.
+    def _raw_row(cl, cr, yy, r, max_d, num, rpad, out, colsum, sign):
+        """Hamming distances ``out[x', j]`` of (clamped) image row ``yy``, padded columns ``x' in [0, W + 2r)``,
+        added to ``colsum`` after ``sign *`` the previous content of ``out`` (the row leaving the window) is.
 
         As cost.strip_volume: left column ``x' - r``, right column ``x' + 1 + j`` of the right row padded
         (replicated) by ``r + max_d`` on the left (``rpad``: scratch of ``W + 2r + max_d + 1``).
         """
         words, _, w = cl.shape
         wp = w + 2 * r
-        for x in range(wp):
-            for j in range(num):
-                out[x, j] = 0
         for k in range(words):
             for t in range(rpad.shape[0]):
                 rpad[t] = cr[k, yy, min(max(t - r - max_d, 0), w - 1)]
+            last = k == words - 1
             for x in range(wp):
                 lv = cl[k, yy, min(max(x - r, 0), w - 1)]
-                for j in range(num):
-                    out[x, j] += np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
+                row = out[x]
+                col = colsum[x]
+                if k == 0 and last:  # one word: distance, window update and store in one pass
+                    for j in range(num):
+                        new = np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
+                        col[j] += new - sign * row[j]
+                        row[j] = new
+                elif k == 0:
+                    for j in range(num):
+                        col[j] -= sign * row[j]
+                        row[j] = np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
+                else:
+                    for j in range(num):
+                        new = np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
+                        row[j] += new
+                        if last:
+                            col[j] += row[j]
 
     @_jit(inline="always")
     def _min(a, b):
@@ -257,22 +271,11 @@ if AVAILABLE:
         buf = np.empty((2, num), dtype=np.float32)
         for i in range(k):  # rows y0 - r .. y0 + r (clamped)
             yy = min(max(y0 - r + i, 0), h - 1)
-            _raw_row(cl, cr, yy, r, max_d, num, rpad, ring[i])
-            for x in range(wp):
-                for j in range(num):
-                    colsum[x, j] += ring[i, x, j]
+            _raw_row(cl, cr, yy, r, max_d, num, rpad, ring[i], colsum, 0)
         slot = 0  # ring slot of row y - r
         for y in range(y0, y1):
             if y > y0:  # slide the window: drop row y - r - 1, add row y + r
-                yy = min(max(y + r, 0), h - 1)
-                old = ring[slot]
-                for x in range(wp):
-                    for j in range(num):
-                        colsum[x, j] -= old[x, j]
-                _raw_row(cl, cr, yy, r, max_d, num, rpad, old)
-                for x in range(wp):
-                    for j in range(num):
-                        colsum[x, j] += old[x, j]
+                _raw_row(cl, cr, min(max(y + r, 0), h - 1), r, max_d, num, rpad, ring[slot], colsum, 1)
                 slot = (slot + 1) % k
             for j in range(num):
                 acc[j] = 0
