@@ -293,15 +293,13 @@ if AVAILABLE:
             _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf)
 
     @_jit
-    def _select_pixel(codes, codef, num, max_d, bits, subpixel, parabola, uniqueness, floor, eps,
+    def _select_pixel(lo, codes, codef, num, max_d, bits, subpixel, parabola, uniqueness, floor, eps,
                       min_disparity_positive):
-        """matching._select for one pixel from its encoded costs ``codes`` (int32; ``codef``: the same as float32).
+        """matching._select for one pixel from its encoded costs ``codes`` (int32; ``codef``: the same as float32)
+        and their minimum ``lo``.
 
         Returns ``(j, disparity, ok, variance)``; ``ok`` without the left-right check.
         """
-        lo = codes[0]
-        for j in range(1, num):
-            lo = min(lo, codes[j])
         j = lo & ((1 << bits) - 1)
         jm = max(j - 1, 0)
         jp = min(j + 1, num - 1)
@@ -347,7 +345,8 @@ if AVAILABLE:
 
         ``store``: write the aggregated costs into ``horiz`` (else it keeps a partial sum).
         Per pixel: ``jbest``, ``disparity``, ``ok`` (checks but the left-right one), ``variance`` ``(H, W)``;
-        ``rmin`` ``(H, W)``: this band's part of the right view's encoded minimum (min over bands gives it).
+        ``rmin`` ``(H, max_d + W)``: this band's part of the right view's encoded minimum at column
+        ``max_d + xr`` (min over bands gives it; the first ``max_d`` columns are spare).
         A diagonal predecessor outside ``[x0, x1)`` starts the path, so diagonals need the full width.
         """
         h, w, num = cost.shape
@@ -361,15 +360,13 @@ if AVAILABLE:
         cur = np.zeros((ns * (n + 2), num), dtype=np.float32)
         mins = np.zeros(ns * (n + 2), dtype=np.float32)
         cmins = np.zeros(ns * (n + 2), dtype=np.float32)
-        agg = np.empty(num, dtype=np.float32)
-        aggi = agg.view(np.int32)
         codes = np.empty(num, dtype=np.int32)
         codef = codes.view(np.float32)
         high = np.int32(-(1 << bits))
         fpaths = np.float32(paths)
         if lr_check:
             for y in range(h):
-                for x in range(w):
+                for x in range(rmin.shape[1]):
                     rmin[y, x] = np.int32(0x7FFFFFFF)
         for direction in range(2):
             prev[:] = 0.0
@@ -391,27 +388,27 @@ if AVAILABLE:
                             cmins[q] = _step_add(prev, src, c2, p, max_d - 1 - x, mins[src], p1, p2, cur, q, h2, p)
                         else:
                             cmins[q] = _step(prev, src, c2, p, max_d - 1 - x, mins[src], p1, p2, cur, q)
+                            # the aggregated cost, then _encode: clamp_min(0) and the index in the low mantissa
+                            # bits; the min of the codes is the winner
+                            # (and the right view's running minimum: right pixel xr = x - d sees candidate j;
+                            # rmin has max_d spare columns on the left so that no index is negative)
+                            lo = np.int32(0x7FFFFFFF)
+                            rrow = rmin[y, x + 1 :]
                             for j in range(num):
-                                agg[j] = (h2[p, j] + cur[q, j]) / fpaths
-                            if store:
-                                for j in range(num):
-                                    h2[p, j] = agg[j]
-                            # _encode: clamp_min(0), then the index in the low mantissa bits
-                            for j in range(num):
-                                codes[j] = (max(aggi[j], 0) & high) | j
-                            jb, dsp, good, var = _select_pixel(codes, codef, num, max_d, bits, subpixel, parabola,
+                                a = (h2[p, j] + cur[q, j]) / fpaths
+                                if store:
+                                    h2[p, j] = a
+                                code = (max(_bits_of_float(a), np.int32(0)) & high) | np.int32(j)
+                                codes[j] = code
+                                lo = min(lo, code)
+                                if lr_check:
+                                    rrow[j] = min(rrow[j], code)
+                            jb, dsp, good, var = _select_pixel(lo, codes, codef, num, max_d, bits, subpixel, parabola,
                                                                uniqueness, floor, eps, min_disparity_positive)
                             jbest[y, x] = jb
                             disparity[y, x] = dsp
                             ok[y, x] = good
                             variance[y, x] = var
-                            if lr_check:  # right pixel xr = x - d sees this candidate
-                                j0 = max(0, max_d - 1 - x)
-                                # slices: non-negative loop indices, so LLVM sees contiguous access
-                                rrow = rmin[y, x - max_d + 1 + j0 :]
-                                cs = codes[j0:]
-                                for k in range(cs.shape[0]):
-                                    rrow[k] = min(rrow[k], cs[k])
                 prev, cur = cur, prev
                 mins, cmins = cmins, mins
 
@@ -419,14 +416,15 @@ if AVAILABLE:
     def _lr_check_rows(rmins, jbest, ok, max_d, bits, lr_threshold, y0, y1):
         """Left-right check of rows ``[y0, y1)``: the right view's winner (min over the bands' ``rmins``, with
         INVALID_COST where ``xr + d`` leaves the image, as matching._right_view_index) against the left one's."""
-        bands, h, w = rmins.shape
+        bands, h, wp = rmins.shape
+        w = wp - max_d  # column max_d + xr holds right pixel xr
         low = (1 << bits) - 1
         jright = np.empty(w, dtype=np.int32)
         for y in range(y0, y1):
             for xr in range(w):
-                lo = rmins[0, y, xr]
+                lo = rmins[0, y, max_d + xr]
                 for k in range(1, bands):
-                    lo = min(lo, rmins[k, y, xr])
+                    lo = min(lo, rmins[k, y, max_d + xr])
                 if xr + max_d - 1 >= w:
                     lo = min(lo, np.int32(_INVALID_CODE))
                 jright[xr] = lo & low
@@ -499,7 +497,7 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         run(lambda band: _rows_pass(census[0], census[1], block_size // 2, max_disparity, num, band[0], band[1],
                                     f1, f2, cost, horiz), row_bands)
         jbest = np.empty((h, w), dtype=np.int32)
-        rmins = np.empty((len(col_bands), h, w), dtype=np.int32)
+        rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
         run(lambda k: _vertical_select(cost, f1, f2, col_bands[k][0], col_bands[k][1], paths == 8, paths, horiz,
                                        return_volume, *select, jbest, disparity[i], valid[i], variance[i], rmins[k]),
             range(len(col_bands)))
