@@ -209,22 +209,24 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     big = _big(dtype)
     have = ~hole[:, 0]
     d = disparity[:, 0]
-    have_f = have.to(dtype)
     cols = torch.arange(1, W + 1, device=device, dtype=dtype)
-    # running maximum of (column + 1) over non-hole pixels: its index is the nearest non-hole column on the
-    # left (value 0: none); the same on the mirrored row gives the nearest one on the right
-    left, left_at = (have_f * cols).cummax(dim=-1)
-    right, right_at = have_f.flip(-1).mul_(cols).cummax(dim=-1)
-    # a missing side is pushed to +big, so the minimum ignores it
-    d_left = d.gather(-1, left_at).add_(left.eq_(0.0), alpha=big)
-    d_right = d.flip(-1).gather(-1, right_at).add_(right.eq_(0.0), alpha=big).flip(-1)
-    row_fill = torch.minimum(d_left, d_right)
-    image_min = torch.where(have, d, big).flatten(1).amin(dim=1)
+    # running maximum of (column + 1) over non-hole pixels: the nearest non-hole column on the left, plus one (0:
+    # none); the same on the mirrored row gives W minus the nearest one on the right (0: none). At a non-hole pixel
+    # both are the pixel itself, so the minimum below leaves it unchanged.
+    left = (have * cols).cummax(dim=-1).values
+    right = (have.flip(-1) * cols).cummax(dim=-1).values.flip(-1)
+    # values looked up in each row padded with +big on both sides (a missing side reads +big: the minimum ignores it)
+    padded = F.pad(d, (1, 1), value=big).view(-1)
+    base = torch.arange(0, B * H * (W + 2), W + 2, device=device, dtype=torch.int64).view(B, H, 1)
+    at_left = left.to(torch.int64).add_(base).view(-1)
+    at_right = right.sub_(W + 1).neg_().to(torch.int64).add_(base).view(-1)
+    fill = torch.minimum(padded.index_select(0, at_left), padded.index_select(0, at_right)).view(B, H, W)
+    # rows with no non-hole pixel: the smallest non-hole disparity of the image; images with none: 0
+    image_min = d.masked_fill(hole[:, 0], big).flatten(1).amin(dim=1)
     empty = image_min >= big / 2  # (B,): no non-hole pixel at all
     image_fill = torch.where(empty, 0.0, image_min).view(B, 1, 1)
-    # (the masks here are mostly uniform, where torch.where is as cheap as arithmetic)
-    fill = torch.where(row_fill < big / 2, row_fill, image_fill)
-    return torch.where(have, d, fill)[:, None], empty
+    row_fill = torch.where(left[..., -1:] == 0, image_fill, big)  # (B, H, 1)
+    return torch.minimum(fill, row_fill)[:, None], empty
 
 
 def predict_disparity(
@@ -372,20 +374,19 @@ def _predict(
     back = [_affine_map(G, k, xs, ys) for k in range(3)]  # target pixels turned into frame t-1
 
     if mode == "hard" and refine_iterations > 0:
-        est, est_var, landed, src_ok, key_src = _hard_start(
+        est, est_var, landed, fallback, src_ok, key_src = _hard_start(
             d, var, src_ok, A, a, e, back, layout, xs, ys, surface_tolerance, fast
         )
+        est, landed = _hard_refine(
+            est, landed, fallback, d, key_src, A, a, e, back, layout, refine_iterations, surface_tolerance, fast
+        )
     else:
-        key_src = None
         est, est_var, landed, src_ok = _coverage_splat(
             d, var, src_ok, A, a, G, e, back, layout, xs, ys, mode, temperature, refine_iterations, surface_tolerance,
             fast,
         )
-    if refine_iterations > 0:
-        est, landed = _refine(
-            est, landed, key_src is not None, d, src_ok, key_src, A, a, e, back, layout, refine_iterations,
-            surface_tolerance, fast,
-        )
+        if refine_iterations > 0:
+            est = _refine(est, landed, d, src_ok, A, a, e, back, layout, refine_iterations, surface_tolerance, fast)
 
     landed_f = landed.to(dtype)
     hole4 = ~landed[:, None]
@@ -416,17 +417,21 @@ def _hard_start(
     surface_tolerance: float,
     fast: bool,
 ):
-    """Hard mode with refinement: the surface each target pixel sees and a start value on it.
+    """Hard mode with refinement, part 1: the surface each target pixel sees and a start value on it.
 
-    Every moved source point is sent to its nearest target pixel (one ``amax`` scatter of integer keys:
-    the bits of ``d'`` as float32, which order like the values for ``d' >= 0``). A target's candidates
-    are the nearest surface within one pixel (the 3x3 maximum, which closes the cracks of a
-    magnification up to 2) and, behind it, what landed on the pixel itself. A candidate is accepted
-    when the target, sent back into frame ``t-1`` at its depth, falls in a source pixel whose ``d'`` is
-    within ``surface_tolerance`` of it (the surface really reaches the target: no foreground fattening);
-    the first accepted candidate wins and that source pixel's ``d'`` and variance are the start.
+    Every moved source point goes to its nearest target pixel (one ``amax`` scatter of integer keys: the
+    bits of ``d'`` as float32, which order like the values for ``d' >= 0``). A target's candidate is the
+    nearest surface within one pixel (the 3x3 maximum, which closes the cracks of a magnification up to
+    2), or what landed on the pixel itself where that is on the same surface (closer to the target's own
+    value on a slanted surface). The target, sent back into frame ``t-1`` at the candidate's depth, falls
+    in a source pixel; the candidate is accepted when that pixel's disparity is within
+    ``surface_tolerance`` of the one the candidate implies there (the surface really reaches the target:
+    no foreground fattening). That pixel's ``d'`` and variance are the start. Where the candidate is
+    rejected the same start is a fallback (the background seen behind a fattened foreground edge, or a
+    steep surface's own value), accepted by the first refinement step (:func:`_hard_refine`).
 
-    Returns ``(est, est_var, landed, src_ok)``, maps ``(B, H, W)`` (``est_var`` None without variance).
+    Returns ``(est, est_var, landed, fallback, src_ok, key_src)``: maps ``(B, H, W)`` (``est_var`` None without
+    variance) and the padded source disparity (-big where invalid).
     """
     B, H, W = d.shape
     dtype = d.dtype
@@ -448,54 +453,40 @@ def _hard_start(
         Z = zbuf.view(B, layout.Hp, layout.Wp)[:, _PAD - 1 : _PAD + H + 1, _PAD - 1 : _PAD + W + 1]
         rows = torch.maximum(torch.maximum(Z[..., :-2], Z[..., 1:-1]), Z[..., 2:])
         near = torch.maximum(torch.maximum(rows[:, :-2], rows[:, 1:-1]), rows[:, 2:])  # nearest within 1 px
-        own = Z[:, 1:-1, 1:-1]  # what landed on the pixel itself
+        del rows
+        near_v = near.clamp_min(0).view(torch.float32).to(dtype)
+        own_v = Z[:, 1:-1, 1:-1].clamp_min(0).view(torch.float32).to(dtype)  # what landed on the pixel itself
+        del zbuf, Z
+        cand = torch.lerp(near_v, own_v, (near_v - own_v).abs_().lt_(surface_tolerance))
         key_new = layout.pad(d_new.masked_fill_(not_ok, -big), -big)  # d' of valid sources, -big elsewhere
         key_src = layout.pad(dd.masked_fill(not_ok, -big), -big)  # the same in frame t-1 (d)
-
-        def check(cand: torch.Tensor, cand_ok: torch.Tensor):
-            """Send the targets back at ``cand``: the source pixel they fall in and whether its disparity matches
-            the one the candidate implies there (compared in frame t-1, like the refinement's neighbours)."""
-            sx, sy, inv_h, front = _back_project(back, e, cand, True)
-            s_idx = layout.index(sx.clamp_(-1, W).round_(), sy.clamp_(-1, H).round_(), torch.int32)
-            found = key_src.index_select(0, s_idx).view(B, H, W)
-            ok = found.sub_(inv_h.mul_(cand)).abs_() < surface_tolerance
-            return ok.logical_and_(front).logical_and_(cand_ok), s_idx
-
-        def as_value(bits: torch.Tensor) -> torch.Tensor:
-            return bits.clamp_min(0).view(torch.float32).to(dtype)
-
-        # The candidate: what landed on the pixel itself where it is on the nearest surface within 1 px (the 3x3
-        # maximum is off by that surface's slope), else that maximum.
-        near_v, own_v = as_value(near), as_value(own)
-        same = (near_v - own_v).abs_() < surface_tolerance
-        landed, picked = check(torch.lerp(near_v, own_v, same.to(dtype)), near >= 0)
-        # Where that failed, check the d' of the source pixel found there: the background seen behind a fattened
-        # foreground edge, or a steep surface's own value.
-        found = key_new.index_select(0, picked).view(B, H, W)
-        ok, s_idx = check(found.clamp_min(0.0), (found >= 0) & (near >= 0))
-        landed |= ok
-        picked = picked + ok.view(-1).to(torch.int32) * (s_idx - picked)
-        del zbuf, Z, rows, near, own
+        # the check: send the targets back at the candidate; compare in frame t-1, like the refinement
+        sx, sy, inv_h, front = _back_project(back, e, cand, True)
+        picked = layout.index(sx.clamp_(-1, W).round_(), sy.clamp_(-1, H).round_(), torch.int32)
+        found = key_src.index_select(0, picked).view(B, H, W)
+        landed = (found.sub_(inv_h.mul_(cand)).abs_() < surface_tolerance).logical_and_(front)
+        landed &= near >= 0
+        del sx, sy, inv_h, front, found, cand
+        est = key_new.index_select(0, picked).view(B, H, W)
+        fallback = (est >= 0) & (near >= 0) & ~landed
     if fast:
-        est = key_new.index_select(0, picked).view(B, H, W).clamp_min_(0.0)
+        est = est.clamp_min_(0.0)
     else:
-        inv_g = (_affine_map(A, 2, xs, ys) + d * _per_batch(a[:, 2])).clamp_min(_MIN_DEPTH_RATIO).reciprocal()
-        est = layout.pad(d * inv_g, 0.0).index_select(0, picked).view(B, H, W)
-        inv = inv_g
+        inv = (_affine_map(A, 2, xs, ys) + d * _per_batch(a[:, 2])).clamp_min(_MIN_DEPTH_RATIO).reciprocal()
+        est = layout.pad(d * inv, 0.0).index_select(0, picked).view(B, H, W)
     est_var = None
     if var is not None:
         # first-order propagation d' = d / q_z; replicated margins (a target just outside takes the border's)
         est_var = layout.pad(var * inv * inv, None).index_select(0, picked).view(B, H, W)
-    return est, est_var, landed, src_ok, key_src
+    return est, est_var, landed, fallback, src_ok, key_src
 
 
-def _refine(
+def _hard_refine(
     est: torch.Tensor,
     landed: torch.Tensor,
-    guard: bool,
+    fallback: torch.Tensor,
     d: torch.Tensor,
-    src_ok: torch.Tensor,
-    key_src: torch.Tensor | None,
+    key_src: torch.Tensor,
     A: torch.Tensor,
     a: torch.Tensor,
     e: torch.Tensor,
@@ -504,25 +495,87 @@ def _refine(
     refine_iterations: int,
     surface_tolerance: float,
     fast: bool,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inverse-warp refinement (module docstring): exact sub-pixel values on smooth surfaces.
+):
+    """Hard mode with refinement, part 2: inverse-warp steps (module docstring) from the start of :func:`_hard_start`.
 
-    With ``guard``, a target whose first step moves it by more than ``surface_tolerance`` is unlanded: the inverse
-    warp does not settle there (magnification well beyond 2, where the nearest-sample start is unstable).
-    Returns the refined ``est`` and ``landed``.
+    Each step sends the target back at its estimate, samples the source bilinearly where the four neighbours
+    are on the estimate's surface (within ``surface_tolerance``, in frame t-1; the others count with the
+    estimate's own value, so the fixed point is the same as for renormalised weights) and moves the sample
+    forward again. The first step also checks every target once more: it stays landed (``fallback`` targets
+    become landed) where its nearest neighbour is on its start's surface and the step moves it by at most
+    ``surface_tolerance`` (else the inverse warp does not settle there: magnification well beyond 2).
+
+    Returns ``(est, landed)``.
     """
+    B, H, W = d.shape
+    dtype = d.dtype
+    shifts = [j * layout.Wp + i for i, j in _CORNERS]
+    idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
+    d_src_pad = key_src if fast else layout.pad(d, 0.0)
+    a_z = _per_batch(a[:, 2])
+    A20, A21, A22 = (_per_batch(A[:, 2, k]) for k in range(3))
+    for step in range(refine_iterations):
+        sx, sy, inv_h, hz_ok = _back_project(back, e, est, fast)
+        expect = est * inv_h  # the source disparity this target value came from
+        qz = torch.addcmul(torch.addcmul(A22, sx, A20), sy, A21)  # q_z of the sampled point, without its disparity
+        with torch.no_grad():
+            x0 = sx.detach().clamp(-_PAD, W + 1).floor_()
+            y0 = sy.detach().clamp(-_PAD, H + 1).floor_()
+            idx00 = layout.index(x0, y0, idx_dtype)
+        fx, fy = (sx.sub_(x0), sy.sub_(y0)) if fast else (sx - x0, sy - y0)
+        vals, flags = [], []
+        for c in shifts:
+            g = d_src_pad[c:].index_select(0, idx00).view(B, H, W)
+            with torch.no_grad():
+                key = g if fast else key_src[c:].index_select(0, idx00).view(B, H, W)
+                same = torch.sub(key, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
+            vals.append(torch.lerp(expect, g, same))
+            flags.append(same)
+        d_src = torch.lerp(torch.lerp(vals[0], vals[1], fx), torch.lerp(vals[2], vals[3], fx), fy)
+        del vals
+        # move the sampled point forward again (eq. 1); only its new depth ratio q_z is needed
+        qz = qz.addcmul_(d_src, a_z) if fast else torch.addcmul(qz, d_src, a_z)
+        with torch.no_grad():
+            ok = hz_ok & (qz > _MIN_DEPTH_RATIO)
+        new = d_src.div_(qz.clamp_min_(_MIN_DEPTH_RATIO)) if fast else d_src / qz.clamp_min(_MIN_DEPTH_RATIO)
+        if step == 0:
+            with torch.no_grad():
+                rx, ry = (fx.detach() >= 0.5).to(dtype), (fy.detach() >= 0.5).to(dtype)
+                top = torch.lerp(flags[0], flags[1], rx)
+                nearest_same = torch.lerp(top, torch.lerp(flags[2], flags[3], rx), ry).gt_(0.5)
+                settled = torch.sub(new, est).abs_().le_(surface_tolerance)
+                landed = (landed | fallback).logical_and_(nearest_same).logical_and_(settled).logical_and_(hz_ok)
+        del flags
+        est = torch.lerp(est, new, (ok & landed).to(dtype))
+    return est, landed
+
+
+def _refine(
+    est: torch.Tensor,
+    landed: torch.Tensor,
+    d: torch.Tensor,
+    src_ok: torch.Tensor,
+    A: torch.Tensor,
+    a: torch.Tensor,
+    e: torch.Tensor,
+    back: list[torch.Tensor],
+    layout: _Padded,
+    refine_iterations: int,
+    surface_tolerance: float,
+    fast: bool,
+) -> torch.Tensor:
+    """Inverse-warp refinement of the splatted values (soft mode; module docstring): exact on smooth surfaces."""
     B, H, W = d.shape
     dtype = d.dtype
     big = _big(dtype)
     shifts = [j * layout.Wp + i for i, j in _CORNERS]
     with torch.no_grad():
         # source disparity where valid, far below any disparity where not: one gather gives value and test
-        if key_src is None:
-            key_src = layout.pad(torch.add(d, src_ok.to(dtype) - 1.0, alpha=big), -big)
+        key_src = layout.pad(torch.add(d, src_ok.to(dtype) - 1.0, alpha=big), -big)
         idx_dtype = torch.int32 if layout.size < 2**31 else torch.int64
     d_src_pad = key_src if fast else layout.pad(d, 0.0)
     a_z = _per_batch(a[:, 2])
-    for step in range(refine_iterations):
+    for _ in range(refine_iterations):
         sxf, syf, inv_h, hz_ok = _back_project(back, e, est, fast)
         expect = est * inv_h  # the source disparity this target value came from
         with torch.no_grad():
@@ -563,13 +616,8 @@ def _refine(
         else:
             qz2 = qz2.clamp_min(_MIN_DEPTH_RATIO)
             new_est = d_src / qz2
-        if guard and step == 0:
-            with torch.no_grad():
-                settled = (new_est - est).abs() <= surface_tolerance
-                landed = landed & settled
-                ok_ref = ok_ref * settled
         est = torch.lerp(est, new_est, ok_ref)
-    return est, landed
+    return est
 
 
 def _coverage_splat(
