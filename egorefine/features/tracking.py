@@ -399,10 +399,21 @@ def _lk_refine(
     return pos + frac
 
 
+# Subsets of features are padded to a multiple of this many slots: the grouped convolutions
+# then see a handful of shapes over a video instead of a new one every frame (a new shape
+# costs oneDNN a kernel set-up several times the convolution itself).
+_SLOT_STEP = 32
+
+
 def _first_true(mask: torch.Tensor, count: int) -> torch.Tensor:
-    """Slot indices (B, count) of each row of ``mask`` (B, N): its True slots first, in order, then the others."""
+    """Slot indices (B, M) of each row of ``mask`` (B, N): its True slots first, in order, then the others.
+
+    ``count`` is the largest number of True slots in a row; ``M`` is ``count`` rounded up to a
+    multiple of ``_SLOT_STEP`` (at most ``N``), the extra slots being False ones.
+    """
+    size = min(mask.shape[1], -(-count // _SLOT_STEP) * _SLOT_STEP)
     order = torch.sort((~mask).to(torch.uint8), dim=1, stable=True).indices
-    return order[:, :count]
+    return order[:, :size]
 
 
 def _take(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -510,8 +521,8 @@ def _check_values(
 
     The same tests as ``core.check_finite``, all with one synchronisation (which also fetches
     the count): an image sum is finite exactly when every pixel is (images in [0, 1] cannot
-    overflow it; a full-size ``isfinite`` costs as much as a pyramid level), the largest
-    magnitude of a small tensor is finite exactly when every entry is.
+    overflow it; an ``isfinite`` map costs more), the largest magnitude of a small tensor is
+    finite exactly when every entry is.
     """
     # Half-precision images are summed in float32: their sum could overflow their own type.
     wide = torch.float32 if prev.element_size() < 4 else prev.dtype
@@ -634,7 +645,7 @@ def track(
         prev_pyramid, next_pyramid: optional ``build_pyramid(prev, L)`` / ``build_pyramid(next, L)``
             with ``L >= levels`` (e.g. kept from the call that tracked into ``prev``): saves
             building them. Their level 0 is used instead of ``prev`` / ``next``, which then only
-            give the shapes and the NaN check; the caller keeps them consistent.
+            give the shapes (the NaN check looks at the pyramids); the caller keeps them consistent.
 
     Returns:
         :class:`TrackOutput` with keypoints ``(B, N, 2)``, weights, score and fb_error ``(B, N)``.
@@ -661,7 +672,16 @@ def track(
     check_same_device(prev, "prev", next=next, keypoints=keypoints, weights=weights, predicted=predicted)
     _check_track_settings(patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters)
     _check_predicted_radius(predicted_radius)
-    count = _check_values(prev, next, keypoints, weights, predicted)  # one host sync
+    pyr_prev = _given_pyramid(prev_pyramid, "prev_pyramid", levels, dims)
+    pyr_next = _given_pyramid(next_pyramid, "next_pyramid", levels, dims)
+    if keypoints.numel() > 0:
+        pyr_prev = pyr_prev or build_pyramid(prev, levels)
+        pyr_next = pyr_next or build_pyramid(next, levels)
+    # NaN/Inf anywhere in an image reaches its coarsest level (every pixel has a positive weight
+    # there), so that small level is checked instead of the full image.
+    coarse_prev = prev if pyr_prev is None else pyr_prev[-1]
+    coarse_next = next if pyr_next is None else pyr_next[-1]
+    count = _check_values(coarse_prev, coarse_next, keypoints, weights, predicted)  # one host sync
 
     keypoints = keypoints.to(prev.dtype)
     start = keypoints if predicted is None else predicted.to(prev.dtype)
@@ -670,8 +690,6 @@ def track(
     if count == 0:  # no features (or an empty batch): nothing to match
         zeros = torch.zeros_like(weights)
         return TrackOutput(keypoints.clone(), weights * zeros, zeros, zeros.clone())
-    pyr_prev = _given_pyramid(prev_pyramid, "prev_pyramid", levels, dims) or build_pyramid(prev, levels)
-    pyr_next = _given_pyramid(next_pyramid, "next_pyramid", levels, dims) or build_pyramid(next, levels)
     settings = dict(
         patch_size=patch_size,
         search_radius=search_radius,
@@ -685,14 +703,20 @@ def track(
         lk_iters=lk_iters,
         predicted_radius=None if predicted is None else predicted_radius,
     )
-    if count == n:
-        return _track_live(pyr_prev, pyr_next, keypoints, weights, start, **settings)
+    zeros = torch.zeros_like(weights)
+    if count > n - _SLOT_STEP:  # (almost) every slot is live: no subset
+        out = _track_live(pyr_prev, pyr_next, keypoints, weights, start, **settings)
+        return TrackOutput(
+            torch.where(live.unsqueeze(-1), out.keypoints, keypoints),
+            out.weights,
+            out.score * live,
+            out.fb_error * live,
+        )
     # Only the live slots are matched (empty ones cost as much): the live slots of every row
-    # first, as many columns as the fullest row has live features.
+    # first, as many columns as the fullest row has live features (rounded up, see _first_true).
     idx = _first_true(live, count)
     sub = _track_live(pyr_prev, pyr_next, _take(keypoints, idx), _take(weights, idx), _take(start, idx), **settings)
     sub_live = _take(live, idx)
-    zeros = torch.zeros_like(weights)
     return TrackOutput(
         _put(keypoints, idx, torch.where(sub_live.unsqueeze(-1), sub.keypoints, _take(keypoints, idx))),
         _put(weights * zeros, idx, sub.weights),

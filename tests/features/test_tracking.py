@@ -315,6 +315,10 @@ def test_bad_input(scene):
     nan_img[0, 0, 5, 5] = float("nan")
     with pytest.raises(ValueRangeError, match="next"):
         track(img, nan_img, kp, w)
+    with pytest.raises(ValueRangeError, match="next"):
+        track(img, img, kp, w, next_pyramid=build_pyramid(nan_img, 3))
+    with pytest.raises(ValueRangeError, match="prev"):
+        track(nan_img.expand(1, 3, -1, -1), img, kp[:, :0], w[:, :0])
     with pytest.raises(ValueRangeError, match="patch_size"):
         track(img, img, kp, w, patch_size=8)
     with pytest.raises(ValueRangeError, match="cost"):
@@ -439,6 +443,15 @@ def test_empty_slots_are_skipped_and_do_not_change_live_ones(scene):
             torch.testing.assert_close(field_b[b, live], field_alone[0], atol=1e-5, rtol=0)
         assert (batch.weights[b, ~live] == 0).all() and (batch.score[b, ~live] == 0).all()
         torch.testing.assert_close(batch.keypoints[b, ~live], kp[0, ~live], atol=0, rtol=0)
+    # A few empty slots (no subset taken): the same rules.
+    w4 = w.clone()
+    w4[0, :5] = 0
+    few = track(img, nxt, kp, w4, predicted=predicted)
+    torch.testing.assert_close(few.keypoints[0, :5], kp[0, :5], atol=0, rtol=0)
+    assert (few.weights[0, :5] == 0).all() and (few.score[0, :5] == 0).all() and (few.fb_error[0, :5] == 0).all()
+    alone = track(img, nxt, kp[:, 5:], w4[:, 5:], predicted=predicted[:, 5:])
+    for field_few, field_alone in zip(few, alone, strict=True):
+        torch.testing.assert_close(field_few[:, 5:], field_alone, atol=1e-5, rtol=0)
     nothing = track(img, nxt, kp, torch.zeros_like(w), predicted=predicted)
     assert (nothing.weights == 0).all()
     torch.testing.assert_close(nothing.keypoints, kp, atol=0, rtol=0)
