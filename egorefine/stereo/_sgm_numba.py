@@ -7,14 +7,22 @@ loops compiled by numba, run in nogil kernels over row or column bands from a th
 (not numba's ``parallel=True``, whose threading layer can clash with torch's OpenMP).
 
 The kernels repeat the torch path's float32 operations one for one, in the same order, so
-their results equal it bit for bit: census costs are integer window sums (exact in float32),
-each recursion step is ``(C - m) + min(prev, m + P2, prev[d +- 1] + P1)`` as in
-:func:`egorefine.stereo.sgm._step`, the path costs are summed in the order of
-:func:`~egorefine.stereo.sgm.sgm_aggregate`, and the selection repeats
-:func:`egorefine.stereo.matching._select` including its index-in-mantissa encoding (so ties
-resolve the same way). Layout is ``(H, W, D)`` with the disparity axis innermost (contiguous,
-so LLVM vectorises the loops over it) and reversed as in :mod:`egorefine.stereo.cost`
-(index ``j`` is disparity ``max_disparity - 1 - j``).
+their results equal it bit for bit: census costs are integer window sums (exact in float32,
+stored as int16), each recursion step is ``(C - m) + min(prev, m + P2, prev[d +- 1] + P1)`` as
+in :func:`egorefine.stereo.sgm._step`, the path costs are summed in the order of
+:func:`~egorefine.stereo.sgm.sgm_aggregate` (horizontal pair first, then top-down, then
+bottom-up), and the selection repeats :func:`egorefine.stereo.matching._select` including its
+index-in-mantissa encoding (so ties resolve the same way). Layout is ``(H, W, D)`` with the
+disparity axis innermost (contiguous, so LLVM vectorises the loops over it) and reversed as in
+:mod:`egorefine.stereo.cost` (index ``j`` is disparity ``max_disparity - 1 - j``).
+
+Phases per batch item (each split over ``threads`` bands, a barrier between them):
+census of both images; per row band, the cost rows and their horizontal paths (the row still
+in cache) into a float32 volume; per column band, the top-down paths added to it, then the
+bottom-up ones with each pixel's winner selection as soon as its sum is complete (the
+right view's minimum is gathered per band on the way); per row band, the left-right check.
+Diagonal paths (8 paths) cross column bands, so their vertical phase is one band.
+Compiled with ``cache=True``: the first call on a machine compiles for a few seconds.
 
 ``AVAILABLE`` is False when numba cannot be imported; callers then use the torch path.
 """

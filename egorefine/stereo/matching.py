@@ -5,7 +5,9 @@ The box-aggregated path works on strips of rows so that memory stays at a few
 ``(B, D, h, W)`` strips whatever the image size; SGM needs the whole volume (its vertical
 paths cross every row) and holds about four ``(B, D, H, W)`` volumes. The default matcher
 (SAD on the x-Sobel prefiltered images, box aggregation) runs in exact int16 arithmetic
-(:mod:`egorefine.stereo.fast`) whenever no gradient is needed.
+(:mod:`egorefine.stereo.fast`) whenever no gradient is needed; census + SGM on float32 CPU
+tensors without gradient runs compiled (:mod:`egorefine.stereo._sgm_numba`, numba; about
+6 bytes per candidate), with the same results as the torch path.
 """
 
 from __future__ import annotations

@@ -153,3 +153,21 @@ def test_numba_textureless_pair_is_all_invalid_without_nan():
     _, v, var, vol = _sgm_numba.census_sgm_select(flat, flat, 8, 0, 5, 5, 12.5, 75.0, 4,
                                                   {**_OPTS, "scale": 25.0, "min_disparity": 0}, return_volume=True)
     assert torch.isfinite(vol).all() and torch.isfinite(var).all()
+
+
+@needs_numba
+def test_numba_compiles_without_a_cache_location(monkeypatch):
+    # numba raises RuntimeError at decoration when no cache directory is writable: compile without caching
+    real = _sgm_numba.numba.njit
+
+    def njit(*args, cache=False, **kwargs):
+        if cache:
+            raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
+        return real(*args, cache=cache, **kwargs)
+
+    monkeypatch.setattr(_sgm_numba.numba, "njit", njit)
+
+    def f(x):
+        return x + 1
+
+    assert _sgm_numba._jit(f)(1) == 2
