@@ -143,17 +143,15 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     y_idx = torch.arange(rows, device=dev).view(1, rows, 1)
     b_idx = torch.arange(b, device=dev).view(b, 1, 1)
     at_winner = b_idx * s_b + gp * s_p + y_idx * s + guard + x_idx.view(1, 1, w)  # plane j = 0 at x
-    # gathered per pixel, at j = winner: planes j -+ 1 at x (sub-pixel fit), plane j at x (the winner;
-    # the uniqueness check knocks these three out), plane j + dj at column x - dj (left-right check)
-    # and the right view's minimum at x - d = x - (max_d - 1 - j)
-    parts = [at_winner - s_p, at_winner + s_p, at_winner]
+    # flat indices per pixel for the winner j: plane j at x (the winner), planes j -+ 1 at x (sub-pixel fit;
+    # the uniqueness check knocks these three out), plane j + dj at column x - dj (left-right check), then
+    # the right view's minimum at x - d = x - (max_d - 1 - j); all but the first are gathered
+    parts = [at_winner, at_winner - s_p, at_winner + s_p]
     parts += [at_winner + dj * (s_p - 1) for dj in range(-guard, guard + 1) if dj]
-    steps_list = [s_p] * len(parts)
+    n_vol = len(parts)
     if lr_check:
         parts.append(vol_size + b_idx * (rows * (max_d + w)) + y_idx * (max_d + w) + x_idx.view(1, 1, w) + 1)
-        steps_list.append(1)
     base = torch.stack(parts, 1).to(torch.int32)  # (B, K, rows, W)
-    steps = torch.tensor(steps_list, dtype=torch.int32, device=dev).view(1, -1, 1, 1)
     j_values = torch.arange(num, dtype=torch.int16, device=dev).unbind(0)  # 0-d tensors: cheaper to pass than ints
 
     dtype = left.dtype
@@ -181,7 +179,8 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         flat = vol.view(b, planes, rows * s)
         right_min_all = buf[vol_size:].view(b, rows, max_d + w)[..., max_d:]
         small = torch.empty((3, b, rows, w), dtype=torch.int16, device=dev)
-        index = torch.empty((b * len(steps_list) * rows * w,), dtype=torch.int32, device=dev)
+        index = torch.empty((b * len(parts) * rows * w,), dtype=torch.int32, device=dev)
+        j32 = torch.empty((b, 2, rows, w), dtype=torch.int32, device=dev)
         t_abs = torch.empty((b, 1, rows + 2 * r, s), dtype=torch.int16, device=dev)
         t_vert = torch.empty((b, 1, rows, s), dtype=torch.int16, device=dev)
         t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
@@ -213,14 +212,14 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
                 cache[n] = (raw_n, vert_n.view(b, n, s), vert_n[:, :-1], vert_n[:, 1:], vert_n[:, :length], pairs_n,
                             raw_n.as_strided((b, n, block, s), (raw_n.stride(0), s, s, 1)),
                             pairs_n.as_strided((b, half, length), (pairs_n.stride(0), 2, 1), 1), running, planes_,
-                            index[: b * len(steps_list) * n * w].view(b, -1, n, w))
+                            index[: b * len(parts) * n * w].view(b, -1, n, w), j32[:, :, :n].unbind(1))
             return cache[n]
 
         while (y0 := next_band()) is not None:
             y1 = min(h, y0 + rows)
             n = y1 - y0
             (raw_n, vert3, vert_lo, vert_hi, vert_head, pairs_n, rows_view, col_windows, running, planes_,
-             index_n) = views(n)
+             index_n, (j_int, j_step)) = views(n)
             best, jbest, mask, right_min = running
             best.fill_(_INVALID)
             jbest.zero_()
@@ -253,9 +252,12 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
             bst = best.unsqueeze(1)
             jb = jbest.unsqueeze(1)
             # one gather from the flat buffer: the costs around the winner and the right view's minimum at x - d
-            at = torch.mul(jb, steps, out=index_n)
-            at += base[:, :, :n]
-            vals = buf.index_select(0, at.view(-1)).view(b, -1, n, w)
+            # (int32 index arithmetic of one dtype: mixed-dtype ops take a slow path)
+            j_int = j_int.unsqueeze(1).copy_(jb)
+            torch.add(base[:, :n_vol, :n], torch.mul(j_int, s_p, out=j_step.unsqueeze(1)), out=index_n[:, :n_vol])
+            if lr_check:
+                torch.add(base[:, n_vol:, :n], j_int, out=index_n[:, n_vol:])
+            vals = buf.index_select(0, index_n[:, 1:].reshape(-1)).view(b, -1, n, w)
             c_plus, c_minus = vals[:, :1], vals[:, 1:2]  # reversed: j - 1 is d + 1
             hi = torch.maximum(bst, c_plus)
             ok = hi < _INVALID  # (a guard plane reads _INVALID: j > 0)
@@ -266,15 +268,16 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
                 # left-right check (right view from the same volume: cost_right(xr, d) = cost_left(xr + d, d)):
                 # the right view's minimum at xr = x - d must be reached by a disparity within lr_threshold
                 # of d, i.e. by cost_right(x - d, d + dj) = cost_left(x + dj, d + dj) for some |dj| <= guard
-                ok &= vals[:, 2 : 3 + 2 * guard].amin(dim=1, keepdim=True) <= vals[:, -1:]
+                near = torch.minimum(bst, vals[:, 2 : 2 + 2 * guard].amin(dim=1, keepdim=True)) if guard else bst
+                ok &= near <= vals[:, -1:]
             if uniqueness_ratio > 0:
                 # runner-up beyond +-1 px of the winner: knock out the winner and its neighbours, then one minimum
-                buf.index_fill_(0, at[:, :3].reshape(-1).long(), _INVALID)
+                buf.index_fill_(0, index_n[:, :3].reshape(-1).long(), _INVALID)
                 second = vol[:, gp : gp + num, :n, guard : guard + w].amin(dim=1, keepdim=True).float()
                 ok &= second > bst.float() * (1 + uniqueness_ratio)
             ok &= texture_ok(y0, n)
             valid[..., y0:y1, :] = ok
-            _tail(jb, vals[:, :3], ok, inner, max_d, unit, area, opts,
+            _tail(jb, vals[:, :2], bst, ok, inner, max_d, unit, area, opts,
                   (disparity[..., y0:y1, :], variance[..., y0:y1, :]))
 
     starts = iter(range(0, h, rows))
@@ -309,18 +312,18 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     return disparity, valid, variance
 
 
-def _tail(j: torch.Tensor, costs: torch.Tensor, valid: torch.Tensor, inner: torch.Tensor, max_d: int, unit: float,
-          area: float, opts: dict, out: tuple[torch.Tensor, ...]) -> None:
+def _tail(j: torch.Tensor, costs: torch.Tensor, best: torch.Tensor, valid: torch.Tensor, inner: torch.Tensor,
+          max_d: int, unit: float, area: float, opts: dict, out: tuple[torch.Tensor, ...]) -> None:
     """Sub-pixel fit and variance of one band (the formulas of ``matching._select``), written into ``out``.
 
-    ``costs`` ``(B, 3, n, W)``: the integer costs at the winner's d + 1, d - 1 and d. 0/1 float factors
+    ``costs`` ``(B, 2, n, W)``: the integer costs at the winner's d + 1 and d - 1; ``best`` at d. 0/1 float factors
     replace torch.where (where and masked_fill on bool masks are ~20x slower than arithmetic on CPU);
     band-sized temporaries stay in cache.
     """
     disparity, variance = out
     dtype = disparity.dtype
     f = costs.to(dtype).mul_(unit)
-    cp, cm, c0 = f[:, 0:1], f[:, 1:2], f[:, 2:3]
+    cp, cm, c0 = f[:, 0:1], f[:, 1:2], best.to(dtype).mul_(unit)
     inner = inner.view(torch.uint8).to(dtype)
     keep = valid.view(torch.uint8).to(dtype)
     curvature = cm - 2 * c0 + cp

@@ -157,8 +157,9 @@ def _reference(left, right, max_d, min_d=0, block=9, lr_check=True, lr_threshold
     ok &= texture.to(torch.int16) >= texture_threshold * block * block * 255.0 * scale
     opts = {"subpixel": subpixel, "subpixel_fit": subpixel_fit, "cost_floor": 1e-3}
     disparity, variance = torch.empty(b, 1, h, w), torch.empty(b, 1, h, w)
-    costs = torch.cat([c_plus, c_minus, best], 1).to(torch.int16)
-    fast._tail(j, costs, ok, inner, max_d, 1.0 / (255.0 * scale), float(block * block), opts, (disparity, variance))
+    costs = torch.cat([c_plus, c_minus], 1).to(torch.int16)
+    fast._tail(j, costs, best.to(torch.int16), ok, inner, max_d, 1.0 / (255.0 * scale), float(block * block), opts,
+               (disparity, variance))
     return disparity, ok, variance
 
 
