@@ -388,14 +388,14 @@ def _predict(
         if refine_iterations > 0:
             est = _refine(est, landed, d, src_ok, A, a, e, back, layout, refine_iterations, surface_tolerance, fast)
 
-    landed_f = landed.to(dtype)
     hole4 = ~landed[:, None]
-    est = (est * landed_f)[:, None]
-    if fill_holes:
-        est, _ = fill_holes_background(est, hole4)
-    carried = (est_var + process_noise) if est_var is not None else torch.full_like(landed_f, process_noise)
-    out_var = torch.lerp(torch.full_like(landed_f, hole_variance), carried, landed_f)[:, None]
-    confidence = landed_f[:, None] / (1.0 + out_var)
+    if fill_holes:  # (reads only the landed values)
+        est, _ = fill_holes_background(est[:, None], hole4)
+    else:
+        est = (est * landed.to(dtype))[:, None]
+    carried = (est_var + process_noise) if est_var is not None else torch.full_like(est, process_noise)[:, 0]
+    out_var = carried[:, None].masked_fill(hole4, hole_variance)
+    confidence = (1.0 + out_var).reciprocal().masked_fill_(hole4, 0.0)
     return Prediction(est, out_var, hole4, ~hole4, confidence)
 
 
@@ -457,18 +457,18 @@ def _hard_start(
         near_v = near.clamp_min(0).view(torch.float32).to(dtype)
         own_v = Z[:, 1:-1, 1:-1].clamp_min(0).view(torch.float32).to(dtype)  # what landed on the pixel itself
         del zbuf, Z
-        cand = torch.lerp(near_v, own_v, (near_v - own_v).abs_().lt_(surface_tolerance))
+        cand = torch.lerp(near_v, own_v, (near_v - own_v).lt_(surface_tolerance))  # (near_v >= own_v)
         key_new = layout.pad(d_new.masked_fill_(not_ok, -big), -big)  # d' of valid sources, -big elsewhere
         key_src = layout.pad(dd.masked_fill(not_ok, -big), -big)  # the same in frame t-1 (d)
         # the check: send the targets back at the candidate; compare in frame t-1, like the refinement
         sx, sy, inv_h, front = _back_project(back, e, cand, True)
         picked = layout.index(sx.clamp_(-1, W).round_(), sy.clamp_(-1, H).round_(), torch.int32)
         found = key_src.index_select(0, picked).view(B, H, W)
-        landed = (found.sub_(inv_h.mul_(cand)).abs_() < surface_tolerance).logical_and_(front)
-        landed &= near >= 0
+        has_near = near >= 0
+        landed = (found.sub_(inv_h.mul_(cand)).abs_() < surface_tolerance) & front & has_near
         del sx, sy, inv_h, front, found, cand
         est = key_new.index_select(0, picked).view(B, H, W)
-        fallback = (est >= 0) & (near >= 0) & ~landed
+        fallback = (est >= 0) & has_near & ~landed
     if fast:
         est = est.clamp_min_(0.0)
     else:
@@ -540,11 +540,11 @@ def _hard_refine(
         new = d_src.div_(qz.clamp_min_(_MIN_DEPTH_RATIO)) if fast else d_src / qz.clamp_min(_MIN_DEPTH_RATIO)
         if step == 0:
             with torch.no_grad():
-                rx, ry = (fx.detach() >= 0.5).to(dtype), (fy.detach() >= 0.5).to(dtype)
+                rx, ry = fx.detach().round(), fy.detach().round()  # 0 / 1: which neighbour is the nearest
                 top = torch.lerp(flags[0], flags[1], rx)
-                nearest_same = torch.lerp(top, torch.lerp(flags[2], flags[3], rx), ry).gt_(0.5)
-                settled = torch.sub(new, est).abs_().le_(surface_tolerance)
-                landed = (landed | fallback).logical_and_(nearest_same).logical_and_(settled).logical_and_(hz_ok)
+                nearest_same = torch.lerp(top, torch.lerp(flags[2], flags[3], rx), ry) > 0.5
+                settled = torch.sub(new, est).abs_() <= surface_tolerance
+                landed = (landed | fallback) & nearest_same & settled & hz_ok
         del flags
         est = torch.lerp(est, new, (ok & landed).to(dtype))
     return est, landed
