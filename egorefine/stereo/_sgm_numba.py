@@ -124,8 +124,8 @@ if AVAILABLE:
 
     @_jit
     def _raw_row(cl, cr, yy, r, max_d, num, rpad, out, colsum, sign):
-        """Hamming distances ``out[x', j]`` of (clamped) image row ``yy``, padded columns ``x' in [0, W + 2r)``,
-        added to ``colsum`` after ``sign *`` the previous content of ``out`` (the row leaving the window) is.
+        """Hamming distances ``out[x', j]`` of (clamped) image row ``yy``, padded columns ``x' in [0, W + 2r)``;
+        ``colsum`` gains them and loses ``sign *`` the previous content of ``out`` (the row leaving the window).
 
         As cost.strip_volume: left column ``x' - r``, right column ``x' + 1 + j`` of the right row padded
         (replicated) by ``r + max_d`` on the left (``rpad``: scratch of ``W + 2r + max_d + 1``).
