@@ -8,6 +8,14 @@ int16: absolute differences and their box sums are exact integers, and every ful
 moves half the bytes of float32 (CPU int16 kernels are vectorised twice as wide). Only the
 winner's, its neighbours' and the runner-up's costs are converted to float.
 
+Every pass is memory-bound, so the work is ordered for the cache: the image is cut into bands of
+rows, and a band's volume is built one disparity plane at a time (raw costs, vertical then
+horizontal window sums on the flattened plane, all contiguous). While a plane is in cache it
+updates the running minimum, the index of its first occurrence and the right view's minimum
+(left-right check); it is also stored, and after the band the winner's neighbours are gathered
+from the store with one ``index_select`` and the runner-up (uniqueness) is one reduction over it.
+Bands run on several Python threads (torch ops release the GIL), each with one torch thread.
+
 The disparity axis is reversed as in :mod:`egorefine.stereo.cost` (index ``j`` is disparity
 ``max_disparity - 1 - j``): the shifted right image is then a positive-stride view.
 """
@@ -32,11 +40,13 @@ _INVALID = 32767
 # where the matcher gives no measurement, and the floor of an integer-rounded match
 INVALID_VARIANCE = 1.0e4
 _QUANTISATION_VARIANCE = 1.0 / 12.0
-# a band's cost plane (B * rows * padded width): ~130 k int16 elements, large enough that an op's fixed
-# cost (~3 us) is small beside its work, small enough that a plane and the band's running minima stay
-# in cache; a band's stored volume (planes * plane) at most ~8 M elements (16 MB per worker)
+# a band's cost plane (B * rows * padded width): ~65 k int16 elements, large enough that an op's fixed
+# cost (~3 us) is small beside its work, small enough that a plane, its raw costs and the band's running
+# minima stay in the 2 MB L2 cache (measured best of 2**15..2**17 at 640x480 / 64); a band's stored volume
+# (planes * plane) at most ~4 M elements, 8 MB per worker (2**23: ~3 % faster at 1242x375 / 128, twice
+# the memory; 2**21: ~20 % slower there)
 _BAND_ELEMENTS = 1 << 16
-_VOLUME_ELEMENTS = 1 << 23
+_VOLUME_ELEMENTS = 1 << 22
 _MIN_ROWS = 8  # at least this many output rows per band (the 2r halo rows of raw costs are computed twice)
 
 
@@ -151,7 +161,9 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     n_vol = len(parts)
     if lr_check:
         parts.append(vol_size + b_idx * (rows * (max_d + w)) + y_idx * (max_d + w) + x_idx.view(1, 1, w) + 1)
-    base = torch.stack(parts, 1).to(torch.int32)  # (B, K, rows, W)
+    # (int32 index arithmetic is half the bytes; int64 only for a buffer beyond its range)
+    index_dtype = torch.int32 if vol_size + b * rows * (max_d + w) < 2**31 else torch.int64
+    base = torch.stack(parts, 1).to(index_dtype)  # (B, K, rows, W)
     j_values = torch.arange(num, dtype=torch.int16, device=dev).unbind(0)  # 0-d tensors: cheaper to pass than ints
 
     dtype = left.dtype
@@ -179,8 +191,8 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         flat = vol.view(b, planes, rows * s)
         right_min_all = buf[vol_size:].view(b, rows, max_d + w)[..., max_d:]
         small = torch.empty((3, b, rows, w), dtype=torch.int16, device=dev)
-        index = torch.empty((b * len(parts) * rows * w,), dtype=torch.int32, device=dev)
-        j32 = torch.empty((b, 2, rows, w), dtype=torch.int32, device=dev)
+        index = torch.empty((b * len(parts) * rows * w,), dtype=index_dtype, device=dev)
+        j32 = torch.empty((b, 2, rows, w), dtype=index_dtype, device=dev)
         t_abs = torch.empty((b, 1, rows + 2 * r, s), dtype=torch.int16, device=dev)
         t_vert = torch.empty((b, 1, rows, s), dtype=torch.int16, device=dev)
         t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
