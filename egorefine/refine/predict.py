@@ -13,37 +13,49 @@ which stays finite for points at infinity (``d = 0``: pure rotation moves them).
 
 Forward splatting (:func:`predict_disparity`) has two modes:
 
-* ``"hard"``: a coverage test plus a z-buffer. A moved source pixel covers a target pixel when
-  the target pixel's centre, sent back into frame ``t-1`` at the source's new depth, falls in that
-  source pixel's square (so surfaces tile the target without cracks or fattening, up to a
-  magnification of 2 per frame; a 0.1 px slack closes hairline cracks and a second, single-depth
-  check per target keeps that slack from fattening foreground edges). Among the source pixels
-  covering a target, the nearest surface (largest ``d'``) wins. With refinement (the default) the
-  target starts from the ``d'`` of the source pixel it falls in when sent back at the winner's depth
-  (the z-buffer value where that pixel is not on the winning surface) and carries that source's
-  variance; with ``refine_iterations=0`` the sources within ``surface_tolerance`` of the winner are
-  averaged with their bilinear weights (values and variances).
+* ``"hard"`` (with refinement, the default): a z-buffer and a gathered visibility check. Every moved
+  source point goes to its nearest target pixel with one ``amax`` scatter of integer keys (the bits
+  of ``d'`` as float32 order like the values); a target's candidate is the nearest surface within one
+  pixel (the 3x3 maximum: no cracks up to a magnification of 2 per axis), or what landed on the pixel
+  itself where that is on the same surface. The target, sent back into frame ``t-1`` at the
+  candidate's depth, falls in a source pixel: the candidate is accepted when that pixel's disparity
+  is within ``surface_tolerance`` of the one the candidate implies there (the surface really reaches
+  the target, so foreground edges are not fattened; compared in frame ``t-1``, where neighbouring
+  pixels of a steep surface differ less than after a zoom-in). That source pixel's ``d'`` and
+  variance are the start. Where the candidate is rejected, the same start is a fallback (the
+  background behind a fattened edge, or a steep surface's own value). The first refinement step
+  (below) checks every target once more: it keeps (or, for a fallback, gives) the target when its
+  nearest source neighbour is on the start's surface and the step moves it by at most
+  ``surface_tolerance``; otherwise the pixel is a hole (where magnification is far beyond 2 the
+  inverse warp does not settle and the value would be wrong).
+* ``"hard"`` with ``refine_iterations=0``: a coverage test plus a z-buffer. A moved source pixel covers
+  a target pixel when the target pixel's centre, sent back into frame ``t-1`` at the source's new
+  depth, falls in that source pixel's square (a 0.1 px slack closes hairline cracks and a second,
+  single-depth check per target keeps that slack from fattening foreground edges); among the sources
+  covering a target, the nearest surface (largest ``d'``) wins and the sources within
+  ``surface_tolerance`` of it are averaged with their bilinear weights (values and variances).
 * ``"soft"``: differentiable softmax splatting. Each moved point spreads over the target pixels
   it covers among its four neighbours (the same coverage test, a mask without gradient) with
   bilinear weights ``b`` times ``exp((d' - m) / temperature)`` (``m`` the target's z-buffer value,
   a stabiliser without gradient); the value is the normalised weighted mean, differentiable in
   disparity, motion and intrinsics, and the nearest surface dominates smoothly.
 
-Sub-pixel values (both modes): the splatted value is the moved surface's disparity near, not at,
-the target pixel centre. ``refine_iterations`` inverse-warp steps make it exact on smooth
-surfaces: the target pixel is sent back into frame ``t-1`` with its current estimate, the source
-map is sampled there bilinearly (only among valid neighbours on the same surface), and the
+Sub-pixel values (both modes): the start value is the moved surface's disparity near, not at, the
+target pixel centre. ``refine_iterations`` inverse-warp steps make it exact on smooth surfaces: the
+target pixel is sent back into frame ``t-1`` with its current estimate, the source map is sampled
+there bilinearly (only among valid neighbours on the same surface: in hard mode the others count
+with the estimate's own value, which has the same fixed point as renormalising the weights), and the
 sampled point is moved forward again. On planes this converges to the exact value in one or two
-steps (tests/refine/test_predict.py measures it); one step is the default (on the test scenes the
-10-frame error grows from 0.0441 to 0.0448 px with one step instead of two). Refinement refines
+steps (tests/refine/test_predict.py measures it); one step is the default. Refinement refines
 disparity only; the variance stays the carried one.
 
 Speed: everything is written in pixel-homogeneous coordinates (one affine map per component over
-the grid), the coverage test is division-free, out-of-image corners land in the margin of a padded
-flat layout instead of being masked, the four corners share one index through shifted views, and
-masks are applied by arithmetic (``torch.where`` on noisy masks is slow on CPU). When no input
-needs a gradient, intermediate maps are updated in place; the two paths give the same numbers
-(tests check it). About 40 ms CPU per 640x480 float32 call on one thread (about 135 ms before).
+the grid), out-of-image points land in the margin of a padded flat layout instead of being masked,
+bilinear neighbours share one index through shifted views, and masks are applied by arithmetic
+(``torch.where`` on noisy masks is slow on CPU). When no input needs a gradient, intermediate maps
+are updated in place; the two paths give the same numbers (tests check it). Hard mode at 640x480
+float32 costs about 32 ms of CPU on one thread (the coverage-test version it replaced: about 54 ms;
+the first version: about 135 ms); the hole fill is about 5 ms of that, the refinement step about 14.
 
 Known limit: a discrete map knows a depth edge only to within a pixel, so foreground edges alias by
 up to half a pixel per prediction and the error random-walks (and grows with magnification) when
@@ -83,7 +95,6 @@ _COVER_SLACK = 0.1
 _CORNERS = ((0, 0), (1, 0), (0, 1), (1, 1))
 # Margin (pixels) of the padded flat layout of target and source maps (see _Padded).
 _PAD = 2
-_PASSES = 2
 
 
 class Prediction(NamedTuple):
@@ -382,8 +393,7 @@ def _predict(
         )
     else:
         est, est_var, landed, src_ok = _coverage_splat(
-            d, var, src_ok, A, a, G, e, back, layout, xs, ys, mode, temperature, refine_iterations, surface_tolerance,
-            fast,
+            d, var, src_ok, A, a, G, e, back, layout, xs, ys, mode, temperature, surface_tolerance, fast
         )
         if refine_iterations > 0:
             est = _refine(est, landed, d, src_ok, A, a, e, back, layout, refine_iterations, surface_tolerance, fast)
@@ -634,7 +644,6 @@ def _coverage_splat(
     ys: torch.Tensor,
     mode: str,
     temperature: float,
-    refine_iterations: int,
     surface_tolerance: float,
     fast: bool,
 ):
@@ -682,7 +691,7 @@ def _coverage_splat(
         del nz0
         z_slack, z_strict = layout.full(-big, d), layout.full(-big, d)
         d_det = d_new.detach()
-        keys = []  # the slack keys, kept for the splatting pass (soft mode, or hard without refinement)
+        keys = []  # the slack keys, kept for the splatting pass
         off, excess = torch.empty_like(d_det), torch.empty_like(d_det)
         k_strict = 1.0 - 0.5 / slack  # strict excess = slack excess + k_strict * threshold
         for (i, j), c in zip(_CORNERS, shifts, strict=True):
@@ -702,9 +711,8 @@ def _coverage_splat(
             z_strict[c:].scatter_reduce_(
                 0, tgt, torch.add(d_det, off.clamp_min_(0.0), alpha=-big, out=off).view(-1), "amax"
             )
-            if mode == "soft" or refine_iterations == 0:
-                keys.append(key)
-                excess = torch.empty_like(d_det)
+            keys.append(key)
+            excess = torch.empty_like(d_det)
         del ex0, ey0, thr0, off, excess
         # Each pair above is tested at its own source's depth, so neighbouring squares of one surface may
         # leave hairline cracks (closed by the slack) and the slack may fatten a foreground edge. Decide
@@ -724,50 +732,37 @@ def _coverage_splat(
         landed = zbuf >= 0
         del key_new, swap, zt, sxf, syf
 
-    splat = mode == "soft" or refine_iterations == 0
-    if not splat:
-        # Hard mode with refinement: the refinement only needs a start on the right surface. Start from the
-        # d' of the source pixel the target falls in (on the z-buffer's surface where consistent), else from the
-        # z-buffer value; where the refinement cannot improve it, that source's d' and variance are kept.
+    # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
+    # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
+    z_pad = layout.pad(zbuf, -1.0)
+    wx, wy = (1 - fu, fu), (1 - fv, fv)
+    eps = eps_like(d_new)
+    wsum, num = layout.full(0.0, d), layout.full(0.0, d)
+    num_var = None if var_new is None else layout.full(0.0, d)
+    for (i, j), c, key in zip(_CORNERS, shifts, keys, strict=True):
+        z_at = z_pad[c:].index_select(0, tgt).view(B, H, W)
         with torch.no_grad():
-            consistent_f = consistent.to(dtype)
-        if not fast:
-            s_d = layout.pad(d_new, 0.0).index_select(0, s_idx).view(B, H, W)
-        est = torch.lerp(zbuf, s_d, consistent_f)
-        # (replicated margins: a target falling just outside the source image takes the border pixel's)
-        est_var = None if var_new is None else layout.pad(var_new, None).index_select(0, s_idx).view(B, H, W)
-    else:
-        # ---- splatting: among the sources covering a target, the z-buffer's surface (within surface_tolerance)
-        # averaged with bilinear weights ("hard"), or softmax weights b * exp((d' - m) / T) ("soft").
-        z_pad = layout.pad(zbuf, -1.0)
-        wx, wy = (1 - fu, fu), (1 - fv, fv)
-        eps = eps_like(d_new)
-        wsum, num = layout.full(0.0, d), layout.full(0.0, d)
-        num_var = None if var_new is None else layout.full(0.0, d)
-        for (i, j), c, key in zip(_CORNERS, shifts, keys, strict=True):
-            z_at = z_pad[c:].index_select(0, tgt).view(B, H, W)
-            with torch.no_grad():
-                if mode == "hard":
-                    # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
-                    sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # 1.0 / 0.0, in place (keys are done)
-                else:
-                    # candidates the z-buffer rejected above as fattening are left out
-                    sel = ((key >= 0) & (key <= z_at + surface_tolerance)).to(dtype)
             if mode == "hard":
-                w = sel.mul_((wx[i] * wy[j]).add_(eps)) if fast else (wx[i] * wy[j] + eps) * sel
+                # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
+                sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # 1.0 / 0.0, in place (keys are done)
             else:
-                # softmax splatting: m = the per-target z-buffer value (no gradient, for stability); selected
-                # candidates have d' <= m + surface_tolerance, so the upper clamp never binds on them.
-                logit = ((d_new - z_at) / temperature).clamp(-60.0, surface_tolerance / temperature + 1.0)
-                w = (wx[i] * wy[j] + eps) * logit.exp() * sel
-            wsum[c:].scatter_add_(0, tgt, w.view(-1))
-            num[c:].scatter_add_(0, tgt, (w * d_new).view(-1))
-            if num_var is not None:
-                num_var[c:].scatter_add_(0, tgt, (w * var_new).view(-1))
-        wsum_safe = layout.crop(wsum).clamp_min(eps)  # clamp: empty targets (holes) get 0, not NaN
-        est = layout.crop(num) / wsum_safe
-        est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
-        del wsum, num, num_var
+                # candidates the z-buffer rejected above as fattening are left out
+                sel = ((key >= 0) & (key <= z_at + surface_tolerance)).to(dtype)
+        if mode == "hard":
+            w = sel.mul_((wx[i] * wy[j]).add_(eps)) if fast else (wx[i] * wy[j] + eps) * sel
+        else:
+            # softmax splatting: m = the per-target z-buffer value (no gradient, for stability); selected
+            # candidates have d' <= m + surface_tolerance, so the upper clamp never binds on them.
+            logit = ((d_new - z_at) / temperature).clamp(-60.0, surface_tolerance / temperature + 1.0)
+            w = (wx[i] * wy[j] + eps) * logit.exp() * sel
+        wsum[c:].scatter_add_(0, tgt, w.view(-1))
+        num[c:].scatter_add_(0, tgt, (w * d_new).view(-1))
+        if num_var is not None:
+            num_var[c:].scatter_add_(0, tgt, (w * var_new).view(-1))
+    wsum_safe = layout.crop(wsum).clamp_min(eps)  # clamp: empty targets (holes) get 0, not NaN
+    est = layout.crop(num) / wsum_safe
+    est_var = None if num_var is None else layout.crop(num_var) / wsum_safe
+    del wsum, num, num_var
     del s_idx, s_d, consistent, keys, tgt
 
     return est, est_var, landed, src_ok
