@@ -67,36 +67,6 @@ def _quantise(grey: torch.Tensor, cap: float, scale: int, pad: tuple[int, int, i
     return g, q.to(torch.int16).contiguous()
 
 
-def _box_rows(x: torch.Tensor, k: int, out: torch.Tensor) -> torch.Tensor:
-    """'valid' box sum of ``k`` rows (dim -2) of ``x`` ``(B, D, n, W)`` into ``out`` ``(B, D, n - k + 1, W)``.
-
-    One reduction over an overlapping strided view (window axis of row stride): torch vectorises it
-    along the contiguous W axis, about the price of one addition pass for any ``k``.
-    """
-    b, d, n, w = x.shape
-    sb, sd, sh, sw = x.stride()
-    windows = x.as_strided((b, d, n - k + 1, k, w), (sb, sd, sh, sh, sw), x.storage_offset())
-    return torch.sum(windows, dim=3, dtype=x.dtype, out=out)
-
-
-def _box_cols(x: torch.Tensor, k: int, out: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
-    """'valid' box sum of an odd number ``k`` of columns (dim -1) of ``x`` into ``out`` (``pairs``: scratch, x's shape).
-
-    A window reduction whose window axis has stride 1 is not vectorised, so sums of adjacent pairs
-    ``p[x] = x[x] + x[x + 1]`` are formed first: ``box_k[x] = x[x] + sum_i p[x + 1 + 2 i]`` (window stride 2).
-    """
-    w_out = out.shape[-1]
-    if k == 1:
-        return out.copy_(x[..., :w_out])
-    half = (k - 1) // 2
-    p = torch.add(x[..., :-1], x[..., 1:], out=pairs[..., :-1])
-    b, d, n, _ = p.shape
-    sb, sd, sh, sw = p.stride()
-    windows = p.as_strided((b, d, n, half, w_out), (sb, sd, sh, 2 * sw, sw), p.storage_offset() + sw)
-    torch.sum(windows, dim=3, dtype=x.dtype, out=out)
-    return out.add_(x[..., :w_out])
-
-
 def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
                   scale: int, opts: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Disparity, validity and variance of the box-aggregated SAD matcher, computed in integers.
@@ -172,8 +142,7 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     disparity = torch.empty((b, 1, h, w), dtype=dtype, device=dev)
     variance = torch.empty_like(disparity)
     valid = torch.empty((b, 1, h, w), dtype=torch.bool, device=dev)
-    # texture check in integers: window sum of |x-Sobel| (quantised, replicate borders) against the
-    # threshold on the window mean; as exact as the costs
+    # texture check: the window sum of the quantised |x-Sobel| against the threshold on the window mean
     c_level = round(255.0 * scale * cap)
     # sum >= threshold, the threshold rounded to float32 as in the float comparison, then up to an integer
     t_need = float(torch.tensor(opts["texture_threshold"] * area * 255.0 * scale, dtype=torch.float32))
@@ -193,15 +162,7 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         small = torch.empty((3, b, rows, w), dtype=torch.int16, device=dev)
         index = torch.empty((b * len(parts) * rows * w,), dtype=index_dtype, device=dev)
         j32 = torch.empty((b, 2, rows, w), dtype=index_dtype, device=dev)
-        t_abs = torch.empty((b, 1, rows + 2 * r, s), dtype=torch.int16, device=dev)
-        t_vert = torch.empty((b, 1, rows, s), dtype=torch.int16, device=dev)
-        t_pairs, t_sum = torch.empty_like(t_vert), torch.empty((b, 1, rows, w), dtype=torch.int16, device=dev)
-
-        def texture_ok(y0: int, n: int) -> torch.Tensor:
-            a = torch.sub(lq[..., y0 : y0 + n + 2 * r, extra : extra + w + 2 * r], c_level,
-                          out=t_abs[:, :, : n + 2 * r, : w + 2 * r]).abs_()
-            v = _box_rows(a, block, t_vert[:, :, :n, : w + 2 * r])
-            return _box_cols(v, block, t_sum[:, :, :n], t_pairs[:, :, :n, : w + 2 * r]) >= t_need
+        t_sum = torch.empty((b, rows * s), dtype=torch.int16, device=dev)
 
         cache: dict[int, tuple] = {}
 
@@ -221,17 +182,19 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
                             (right_min[..., : w - d], cost[..., d:]) if lr_check and d < w else None, jt)
                            for dst, cost, d, jt in zip(flat[:, gp : gp + num, shift : shift + length].unbind(1),
                                                        costs, ds, j_values, strict=True)]
+                t_sum_n = t_sum[:, :size]
                 cache[n] = (raw_n, vert_n.view(b, n, s), vert_n[:, :-1], vert_n[:, 1:], vert_n[:, :length], pairs_n,
                             raw_n.as_strided((b, n, block, s), (raw_n.stride(0), s, s, 1)),
                             pairs_n.as_strided((b, half, length), (pairs_n.stride(0), 2, 1), 1), running, planes_,
-                            index[: b * len(parts) * n * w].view(b, -1, n, w), j32[:, :, :n].unbind(1))
+                            index[: b * len(parts) * n * w].view(b, -1, n, w), j32[:, :, :n].unbind(1),
+                            (t_sum_n[:, :length], t_sum_n.view(b, 1, n, s)[..., extra : extra + w]))
             return cache[n]
 
         while (y0 := next_band()) is not None:
             y1 = min(h, y0 + rows)
             n = y1 - y0
             (raw_n, vert3, vert_lo, vert_hi, vert_head, pairs_n, rows_view, col_windows, running, planes_,
-             index_n, (j_int, j_step)) = views(n)
+             index_n, (j_int, j_step), (t_flat, texture)) = views(n)
             best, jbest, mask, right_min = running
             best.fill_(_INVALID)
             jbest.zero_()
@@ -287,7 +250,17 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
                 buf.index_fill_(0, index_n[:, :3].reshape(-1).long(), _INVALID)
                 second = vol[:, gp : gp + num, :n, guard : guard + w].amin(dim=1, keepdim=True).float()
                 ok &= second > bst.float() * (1 + uniqueness_ratio)
-            ok &= texture_ok(y0, n)
+            # texture check in integers: window sum of |x-Sobel| (quantised, replicate borders) >= the threshold,
+            # the windows summed as the costs' (flat rows, then pairs of columns)
+            torch.sub(lv, c_level, out=raw_n).abs_()
+            torch.sum(rows_view, dim=2, dtype=torch.int16, out=vert3)
+            if half:
+                torch.add(vert_lo, vert_hi, out=pairs_n)
+                torch.sum(col_windows, dim=1, dtype=torch.int16, out=t_flat)
+                t_flat.add_(vert_head)
+            else:
+                t_flat.copy_(vert_head)
+            ok &= texture >= t_need
             valid[..., y0:y1, :] = ok
             _tail(jb, vals[:, :2], bst, ok, inner, max_d, unit, area, opts,
                   (disparity[..., y0:y1, :], variance[..., y0:y1, :]))

@@ -46,17 +46,6 @@ def test_int_scale():
         assert k * k * 2 * round(255 * s * cap) < fast._INVALID
 
 
-@pytest.mark.parametrize("k", [1, 3, 5, 9, 15])
-def test_box_sums_against_unfold(k):
-    gen = torch.Generator().manual_seed(k)
-    x = torch.randint(0, 300, (2, 3, 20, 31), generator=gen, dtype=torch.int16)
-    rows = fast._box_rows(x, k, torch.empty(2, 3, 21 - k, 31, dtype=torch.int16))
-    assert torch.equal(rows, x.unfold(2, k, 1).sum(-1).to(torch.int16))
-    pairs = torch.empty_like(x)
-    cols = fast._box_cols(x, k, torch.empty(2, 3, 20, 32 - k, dtype=torch.int16), pairs)
-    assert torch.equal(cols, x.unfold(3, k, 1).sum(-1).to(torch.int16))
-
-
 @pytest.mark.parametrize("kw", [
     {}, {"block_size": 5}, {"block_size": 15}, {"min_disparity": 3}, {"subpixel": False},
     {"subpixel_fit": "parabola"}, {"lr_check": False, "uniqueness_ratio": 0.0}, {"lr_threshold": 2},
