@@ -200,11 +200,14 @@ def main() -> None:
             memory[name] = peak_memory(OURS[name])
             print(f"peak extra memory 1242x375/128 {name}: {memory[name]:.0f} MB", flush=True)
 
-    write_json("stereo", {"threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                          "quick": args.quick, "results": results,
-                          "peak_extra_memory_mb_1242x375_128": memory,
-                          "memory_method": "growth of the process RSS high-water mark (VmHWM) in a fresh subprocess"})
-    update_readme("stereo", table(results, memory, args.threads))
+    # a quick run is a smoke run: its own git-ignored file, and the README keeps the full run's table
+    write_json("stereo_quick" if args.quick else "stereo",
+               {"threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                "quick": args.quick, "results": results,
+                "peak_extra_memory_mb_1242x375_128": memory,
+                "memory_method": "growth of the process RSS high-water mark (VmHWM) in a fresh subprocess"})
+    if not args.quick:
+        update_readme("stereo", table(results, memory, args.threads))
 
 
 def table(results: list[dict], memory: dict, threads: int) -> str:
