@@ -175,7 +175,10 @@ class _Padded:
 
     def index(self, x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.int64) -> torch.Tensor:
         """Flat indices of integer-valued float pixel coordinates ``x, y`` ``(B, H, W)`` in ``[-_PAD, W + _PAD]``."""
-        return (torch.add(x, y, alpha=self.Wp).to(dtype) + self.offset.to(dtype)).view(-1)
+        flat = torch.add(x, y, alpha=self.Wp)
+        if self.size < 2 / torch.finfo(flat.dtype).eps:  # integers exact in this float type: one conversion
+            return flat.add_(self.offset.to(flat.dtype)).to(dtype).view(-1)
+        return (flat.to(dtype) + self.offset.to(dtype)).view(-1)
 
     def full(self, value: float, like: torch.Tensor) -> torch.Tensor:
         return torch.full((self.size,), value, device=like.device, dtype=like.dtype)
@@ -228,9 +231,10 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     right = (have.flip(-1) * cols).cummax(dim=-1).values.flip(-1)
     # values looked up in each row padded with +big on both sides (a missing side reads +big: the minimum ignores it)
     padded = F.pad(d, (1, 1), value=big).view(-1)
-    base = torch.arange(0, B * H * (W + 2), W + 2, device=device, dtype=torch.int64).view(B, H, 1)
-    at_left = left.to(torch.int64).add_(base).view(-1)
-    at_right = right.sub_(W + 1).neg_().to(torch.int64).add_(base).view(-1)
+    index = torch.int32 if padded.numel() < 2**31 else torch.int64
+    base = torch.arange(0, B * H * (W + 2), W + 2, device=device, dtype=index).view(B, H, 1)
+    at_left = left.to(index).add_(base).view(-1)
+    at_right = right.sub_(W + 1).neg_().to(index).add_(base).view(-1)
     fill = torch.minimum(padded.index_select(0, at_left), padded.index_select(0, at_right)).view(B, H, W)
     # rows with no non-hole pixel: the smallest non-hole disparity of the image; images with none: 0
     image_min = d.masked_fill(hole[:, 0], big).flatten(1).amin(dim=1)
