@@ -223,7 +223,8 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     big = _big(dtype)
     have = ~hole[:, 0]
     d = disparity[:, 0]
-    cols = torch.arange(1, W + 1, device=device, dtype=dtype)
+    index = torch.int32 if B * H * (W + 2) < 2**31 else torch.int64
+    cols = torch.arange(1, W + 1, device=device, dtype=index)
     # running maximum of (column + 1) over non-hole pixels: the nearest non-hole column on the left, plus one (0:
     # none); the same on the mirrored row gives W minus the nearest one on the right (0: none). At a non-hole pixel
     # both are the pixel itself, so the minimum below leaves it unchanged.
@@ -231,10 +232,9 @@ def fill_holes_background(disparity: torch.Tensor, hole: torch.Tensor) -> tuple[
     right = (have.flip(-1) * cols).cummax(dim=-1).values.flip(-1)
     # values looked up in each row padded with +big on both sides (a missing side reads +big: the minimum ignores it)
     padded = F.pad(d, (1, 1), value=big).view(-1)
-    index = torch.int32 if padded.numel() < 2**31 else torch.int64
     base = torch.arange(0, B * H * (W + 2), W + 2, device=device, dtype=index).view(B, H, 1)
-    at_left = left.to(index).add_(base).view(-1)
-    at_right = right.sub_(W + 1).neg_().to(index).add_(base).view(-1)
+    at_left = (left + base).view(-1)
+    at_right = (base + (W + 1) - right).view(-1)
     fill = torch.minimum(padded.index_select(0, at_left), padded.index_select(0, at_right)).view(B, H, W)
     # rows with no non-hole pixel: the smallest non-hole disparity of the image; images with none: 0
     image_min = d.masked_fill(hole[:, 0], big).flatten(1).amin(dim=1)
