@@ -75,11 +75,8 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     (up to its float rounding; a right-view tie within ``lr_threshold`` of the left winner passes
     the left-right check here).
 
-    The image is cut into bands of rows. A band's cost volume is built one disparity plane at a
-    time (each plane small enough to stay in cache) and stored; while a plane is in cache it
-    updates the running minimum, the index of its first occurrence and the right view's minimum.
-    The winner's neighbours (sub-pixel fit, left-right check) are then gathered from the stored
-    volume and the runner-up (uniqueness) is one reduction over it.
+    Bands of rows, each built one disparity plane at a time (see the module docstring); the
+    output does not depend on the band size or the number of threads.
 
     Args:
         left, right: ``(B, 1, H, W)`` grey float images (no gradient needed).
