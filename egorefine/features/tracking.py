@@ -70,7 +70,9 @@ class TrackOutput(NamedTuple):
         score: ``(B, N)`` match quality at the result: ZNCC in [-1, 1] for ``cost="zncc"``, the
             negated mean squared / absolute difference per pixel for ``"ssd"`` / ``"sad"``
             (higher is better in every case).
-        fb_error: ``(B, N)`` forward-backward round-trip error in pixels (0 without the check).
+        fb_error: ``(B, N)`` forward-backward round-trip error in pixels (0 where the check did not
+            run: without it, on features already failed, and with ``fb_predicted=False`` on those
+            found next to their prediction).
     """
 
     keypoints: torch.Tensor
@@ -472,8 +474,10 @@ def _forward_match(
     cost: str,
     predicted_radius: int | None,
     min_score: float | None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Level-0 block matching of ``points`` into dst: (positions, best cost, on-edge flag).
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Level-0 block matching of ``points`` into dst: (positions, best cost, on-edge flag, found flag).
+
+    The found flag (B, N) marks the features that the search around the prediction found.
 
     With ``predicted_radius`` (and two levels or more) level 0 is first searched only that far
     around ``start``; the full coarse-to-fine search then runs for the ``live`` features not
@@ -481,7 +485,10 @@ def _forward_match(
     prediction thus skips the coarse levels, a bad one keeps the full reach.
     """
     if predicted_radius is None or len(pyr_src) == 1:
-        return _match_to_level0(pyr_src, pyr_dst, points, start, patch_size, search_radius, refine_radius, cost)
+        out, best, edge = _match_to_level0(
+            pyr_src, pyr_dst, points, start, patch_size, search_radius, refine_radius, cost
+        )
+        return out, best, edge, torch.zeros_like(edge)
     out, best, edge = _match_level(pyr_src[0], pyr_dst[0], points, start, patch_size, predicted_radius, cost)
     with torch.no_grad():
         miss = edge
@@ -489,8 +496,9 @@ def _forward_match(
             miss = miss | (-best < min_score)
         retry = live & miss
         count = int(retry.sum(dim=1).max())  # host sync: the size of the second pass
+    found = live & ~miss
     if count == 0:
-        return out, best, edge
+        return out, best, edge, found
     idx = _first_true(retry, count)
     r_out, r_best, r_edge = _match_to_level0(
         pyr_src,
@@ -507,7 +515,7 @@ def _forward_match(
     out = _put(out, idx, torch.where(sel.unsqueeze(-1), r_out, _take(out, idx)))
     best = _put(best, idx, torch.where(sel, r_best, _take(best, idx)))
     edge = _put(edge, idx, torch.where(sel, r_edge, _take(edge, idx)))
-    return out, best, edge
+    return out, best, edge, found
 
 
 def _check_values(
@@ -591,6 +599,7 @@ def track(
     temperature: float = 0.02,
     lk_iters: int = 1,
     predicted_radius: int | None = 2,
+    fb_predicted: bool = True,
     prev_pyramid: list[torch.Tensor] | None = None,
     next_pyramid: list[torch.Tensor] | None = None,
 ) -> TrackOutput:
@@ -642,6 +651,9 @@ def track(
         lk_iters: Lucas-Kanade polish iterations on level 0 (0: the parabola's estimate as is).
         predicted_radius: with ``predicted``, the level-0 radius of the first search around it
             (None: always the full coarse-to-fine search). Ignored without ``predicted``.
+        fb_predicted: run the forward-backward check also on the features found by that search
+            around the prediction; False lets the prediction's agreement stand in for the check
+            there (cheaper; the check then runs only on the features the full search found).
         prev_pyramid, next_pyramid: optional ``build_pyramid(prev, L)`` / ``build_pyramid(next, L)``
             with ``L >= levels`` (e.g. kept from the call that tracked into ``prev``): saves
             building them. Their level 0 is used instead of ``prev`` / ``next``, which then only
@@ -702,6 +714,7 @@ def track(
         temperature=temperature if soft else None,
         lk_iters=lk_iters,
         predicted_radius=None if predicted is None else predicted_radius,
+        fb_predicted=fb_predicted,
     )
     zeros = torch.zeros_like(weights)
     if count > n - _SLOT_STEP:  # (almost) every slot is live: no subset
@@ -757,11 +770,12 @@ def _track_live(
     temperature: float | None,
     lk_iters: int,
     predicted_radius: int | None,
+    fb_predicted: bool,
 ) -> TrackOutput:
     """:func:`track` on pyramids, every slot matched (the caller drops the empty ones beforehand)."""
     h, w = pyr_prev[0].shape[-2:]
     live = weights > 0
-    out_kp, best, edge = _forward_match(
+    out_kp, best, edge, found = _forward_match(
         pyr_prev,
         pyr_next,
         keypoints,
@@ -801,13 +815,53 @@ def _track_live(
             # the way back is one block match on level 0 (radius refine_radius) with its parabola
             # (~0.1-0.3 px bias, well under fb_threshold): a wrong match lands anywhere in that
             # window, on its edge or far from the start.
-            back, _, back_edge = _match_level(pyr_next[0], pyr_prev[0], kp_d, kp_in, patch_size, refine_radius, cost)
-            fb_error = (back - kp_in).norm(dim=-1)
-            ok = ok & ~back_edge & (fb_error <= fb_threshold)
+            # With fb_predicted=False the features found next to their prediction skip it.
+            fb_error, back_ok = _round_trip(
+                pyr_prev[0],
+                pyr_next[0],
+                kp_in,
+                kp_d,
+                ok if fb_predicted else ok & ~found,
+                patch_size,
+                refine_radius,
+                cost,
+            )
+            ok = ok & back_ok & (fb_error <= fb_threshold)
         else:
             fb_error = torch.zeros_like(weights)
     new_w = weights * ok.to(weights.dtype)
     return TrackOutput(out_kp, new_w, score.to(weights.dtype), fb_error.to(weights.dtype))
+
+
+def _round_trip(
+    prev: torch.Tensor,
+    next: torch.Tensor,  # noqa: A002
+    kp_in: torch.Tensor,
+    kp_out: torch.Tensor,
+    check: torch.Tensor,
+    patch_size: int,
+    radius: int,
+    cost: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward-backward round trip of the ``check`` features (B, N): (error in px, not-on-edge flag), both (B, N).
+
+    ``kp_out`` is matched back from ``next`` into ``prev`` around ``kp_in`` (one level-0 block
+    match); features outside ``check`` get error 0 and pass. All features are matched when
+    most are to be checked, else only the subset (one host synchronisation).
+    """
+    n = check.shape[1]
+    count = n if n <= _SLOT_STEP else int(check.sum(dim=1).max())
+    if count == 0:
+        return torch.zeros_like(kp_in[..., 0]), torch.ones_like(check)
+    if count > n - _SLOT_STEP:
+        back, _, edge = _match_level(next, prev, kp_out, kp_in, patch_size, radius, cost)
+        return torch.where(check, (back - kp_in).norm(dim=-1), 0.0), ~(edge & check)
+    idx = _first_true(check, count)
+    sub_in = _take(kp_in, idx)
+    back, _, edge = _match_level(next, prev, _take(kp_out, idx), sub_in, patch_size, radius, cost)
+    sel = _take(check, idx)
+    err = _put(torch.zeros_like(kp_in[..., 0]), idx, torch.where(sel, (back - sub_in).norm(dim=-1), 0.0))
+    return err, ~_put(torch.zeros_like(check), idx, edge & sel)
 
 
 class Tracker(torch.nn.Module):
@@ -835,6 +889,7 @@ class Tracker(torch.nn.Module):
         temperature: float = 0.02,
         lk_iters: int = 1,
         predicted_radius: int | None = 2,
+        fb_predicted: bool = True,
     ) -> None:
         super().__init__()
         _check_track_settings(
@@ -854,6 +909,7 @@ class Tracker(torch.nn.Module):
         self.temperature = temperature
         self.lk_iters = lk_iters
         self.predicted_radius = predicted_radius
+        self.fb_predicted = fb_predicted
 
     def forward(
         self,
@@ -884,6 +940,7 @@ class Tracker(torch.nn.Module):
             temperature=self.temperature,
             lk_iters=self.lk_iters,
             predicted_radius=self.predicted_radius,
+            fb_predicted=self.fb_predicted,
             prev_pyramid=prev_pyramid,
             next_pyramid=next_pyramid,
         )

@@ -455,3 +455,22 @@ def test_empty_slots_are_skipped_and_do_not_change_live_ones(scene):
     nothing = track(img, nxt, kp, torch.zeros_like(w), predicted=predicted)
     assert (nothing.weights == 0).all()
     torch.testing.assert_close(nothing.keypoints, kp, atol=0, rtol=0)
+
+
+def test_fb_predicted_off_checks_only_features_the_full_search_found(scene):
+    # With fb_predicted=False the features found next to their prediction skip the round
+    # trip (fb_error 0); the others (here: no prediction, 5 px off) still get it.
+    img, kp, w = scene
+    nxt, m = warp(img, 4.2, -3.1)
+    truth = apply(m, kp)
+    predicted = truth.clone()
+    predicted[0, :40] = kp[0, :40]
+    out = track(img, nxt, kp, w, predicted=predicted, fb_predicted=False)
+    full = track(img, nxt, kp, w, predicted=predicted)
+    assert (out.fb_error[0, 40:] == 0).all()
+    checked = out.weights[0, :40] > 0
+    assert checked.sum() >= 30 and (out.fb_error[0, :40][checked] > 0).all()
+    torch.testing.assert_close(out.fb_error[0, :40], full.fb_error[0, :40], atol=0, rtol=0)
+    torch.testing.assert_close(out.keypoints, full.keypoints, atol=0, rtol=0)
+    assert out.weights.sum() >= full.weights.sum()
+    assert median_error(out, truth) < 0.1
