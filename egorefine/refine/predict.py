@@ -54,8 +54,9 @@ the grid), out-of-image points land in the margin of a padded flat layout instea
 bilinear neighbours share one index through shifted views, and masks are applied by arithmetic
 (``torch.where`` on noisy masks is slow on CPU). When no input needs a gradient, intermediate maps
 are updated in place; the two paths give the same numbers (tests check it). Hard mode at 640x480
-float32 costs about 32 ms of CPU on one thread (the coverage-test version it replaced: about 54 ms;
-the first version: about 135 ms); the hole fill is about 5 ms of that, the refinement step about 14.
+float32 costs about 31 ms of CPU on one thread of a busy 2-core machine (the coverage-test version it
+replaced: about 49 ms there; the first version: about 135 ms); the refinement step is about 14 ms of
+that, the check about 5, the hole fill about 4.
 
 Known limit: a discrete map knows a depth edge only to within a pixel, so foreground edges alias by
 up to half a pixel per prediction and the error random-walks (and grows with magnification) when

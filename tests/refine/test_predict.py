@@ -303,13 +303,13 @@ def test_disoccluded_and_entering_pixels_are_flagged(scene):
         pred = predict_disparity(d, motions[k], K, b, variance=var, valid=valid)
         seen = _seen_in_first_frame(k, K, b, disparity, poses)
         hole = pred.hole[0, 0]
-        assert (hole & ~seen).sum() > 0.75 * (~seen).sum(), k  # measured >= 82 % (the rest: edge aliasing)
-        assert (hole & seen).sum() < 0.03 * seen.sum(), k  # measured <= 1.9 %
+        assert (hole & ~seen).sum() > 0.75 * (~seen).sum(), k  # measured >= 85 % (the rest: edge aliasing)
+        assert (hole & seen).sum() < 0.03 * seen.sum(), k  # measured <= 2.6 % (chained: edge pixels drop out)
         assert (pred.confidence[pred.hole] == 0).all()
         assert torch.isfinite(pred.disparity).all() and (pred.disparity[pred.hole] > 0).all()  # never silent zeros
         d, var, valid = pred.disparity, pred.variance, pred.valid
     # the background rule fills holes close to the truth here (back wall, ground)
-    assert (pred.disparity - disparity[10]).abs()[pred.hole].mean() < 0.5  # measured 0.28 px
+    assert (pred.disparity - disparity[10]).abs()[pred.hole].mean() < 0.5  # measured 0.37 px
 
 
 @pytest.mark.parametrize("forward", [1.2, 2.0, 3.0])
