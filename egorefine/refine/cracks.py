@@ -66,7 +66,7 @@ def close_cracks(
     >>> from egorefine.geometry import make_intrinsics
     >>> K, b = make_intrinsics(50.0, 16.0, 12.0), torch.tensor([0.1])
     >>> d = torch.full((1, 1, 24, 32), 4.0)
-    >>> step = torch.eye(4)[None]; step[0, 2, 3] = -0.8  # 0.8 m toward a wall 1.25 m away: 2.8x larger
+    >>> step = torch.eye(4)[None]; step[0, 2, 3] = -0.9  # 0.9 m toward a wall 1.25 m away: 3.6x larger
     >>> pred = predict_disparity(d, step, K, b)
     >>> closed = close_cracks(pred, d, torch.ones_like(d), d > 0, step, K, b)
     >>> bool(pred.valid.all()), bool(closed.valid.all())

@@ -28,11 +28,11 @@ def _translation(tx: float = 0.0, tz: float = 0.0, dtype=torch.float64) -> torch
 
 
 def test_closes_magnification_cracks_with_exact_values():
-    # A wall 1.25 m ahead (4 px), the camera 0.8 m closer: everything in view is magnified 2.8 times, past
-    # what the splat's coverage test tiles, yet the keyframe saw every pixel of the new view.
+    # A wall 1.25 m ahead (4 px), the camera 0.9 m closer: everything in view is magnified 3.6 times, past
+    # what the splat tiles, yet the keyframe saw every pixel of the new view.
     d = torch.full((1, 1, H, W), 4.0, dtype=torch.float64)
-    pred, closed, _, _ = _setup(d, _translation(tz=-0.8))
-    truth = 4.0 * 1.25 / 0.45
+    pred, closed, _, _ = _setup(d, _translation(tz=-0.9))
+    truth = 4.0 * 1.25 / 0.35
     assert (~pred.valid).float().mean() > 0.05  # the cracks are there
     assert closed.valid.all()
     torch.testing.assert_close(closed.disparity, torch.full_like(d, truth), atol=1e-6, rtol=0)
@@ -77,7 +77,7 @@ def test_batch_items_are_independent():
     d = torch.full((1, 1, H, W), 4.0, dtype=torch.float64)
     d2 = d.clone()
     d2[..., 10:22, 18:30] = 8.0
-    m1, m2 = _translation(tz=-0.8), _translation(tx=0.05)
+    m1, m2 = _translation(tz=-0.9), _translation(tx=0.05)
     _, c1, K, b = _setup(d, m1)
     _, c2, _, _ = _setup(d2, m2)
     both_d, both_m = torch.cat([d, d2]), torch.cat([m1, m2])

@@ -206,16 +206,22 @@ def test_predictions_beyond_the_search_range_are_not_valid():
 
 
 def test_filling_cracks_adds_accurate_pixels():
-    # Forward down the corridor without verification: the near walls outgrow the splat's tiling. Looking the
-    # holes up in the keyframe must make more of the map valid, without making the valid part less accurate.
-    seq = render_sequence(num_frames=7, height=120, width=160, scene="corridor", motion="forward", seed=3)
-    scores = {}
+    # Driving down the street without verification: six steps later the road near the car is magnified beyond
+    # what the splat tiles. Looking those holes up in the keyframe must make much more of the map valid, with
+    # values as good, relative to their (large) disparity, as the splatted ones (measured: 0.81 -> 0.91
+    # density; relative error 3.7 % on the added pixels, 7.9 % on the others).
+    seq = render_sequence(num_frames=7, height=120, width=160, preset="kitti", scene="street", motion="forward", seed=3)
+    maps = {}
     for fill in (False, True):
         outs, _ = _run(seq, EgoMotionRefiner(verify_every=100, fill_cracks=fill, **SMALL))
         d = torch.cat([o.disparity for o in outs[1:]])
         v = torch.cat([o.valid for o in outs[1:]]) & ~seq.occluded[1:]
-        err = (d - seq.disparity[1:]).abs()[v]
-        scores[fill] = (v.float().mean().item(), err.mean().item())
-    (dens_off, epe_off), (dens_on, epe_on) = scores[False], scores[True]
-    assert dens_on > dens_off + 0.005, scores
-    assert epe_on < epe_off * 1.05 + 0.005, scores
+        maps[fill] = d, v
+    truth = seq.disparity[1:]
+    (_, v_off), (d_on, v_on) = maps[False], maps[True]
+    # (not exactly a superset: the filled map also feeds the next motion solve, so the runs drift apart a little)
+    assert (v_off & ~v_on).float().sum() < 0.01 * v_off.float().sum()
+    assert v_on.float().mean() > v_off.float().mean() + 0.05
+    relative = (d_on - truth).abs() / truth.clamp_min(0.5)
+    added = v_on & ~v_off
+    assert relative[added].mean() < relative[v_off].mean(), (relative[added].mean(), relative[v_off].mean())
