@@ -1,7 +1,7 @@
 """Close the cracks of a forward-splatted prediction by looking each hole pixel up in the source map.
 
-Forward splatting (:func:`~egorefine.refine.predict_disparity`) tiles the target without cracks up to a
-magnification of about two. The refiner predicts from its last verified keyframe with the motion composed
+Forward splatting (:func:`~egorefine.refine.predict_disparity`) tiles the target only up to a limited
+magnification (its tests: 90 % of the seen pixels land at 3x, 3.6x leaves a third of them as holes). The refiner predicts from its last verified keyframe with the motion composed
 since then, so a near surface can be magnified far more (a road 5 m ahead, four 1.1 m steps later, is 8 times
 larger), and such surfaces come out as holes although the keyframe saw them. Disocclusions are holes too, but
 there the keyframe saw another surface.
