@@ -82,6 +82,7 @@ def test_bands_and_batch_do_not_change_the_result(pair, monkeypatch):
     left, right, _ = pair
     ref = match_stereo(left, right, 16)
     monkeypatch.setattr(fast, "_BAND_ELEMENTS", 1)  # _MIN_ROWS rows per band (48 rows: 6 bands)
+    monkeypatch.setattr(fast, "_STEP_ELEMENTS", 1)  # one plane at a time
     rows = match_stereo(left, right, 16)
     assert torch.equal(ref.valid, rows.valid) and torch.equal(ref.disparity, rows.disparity)
     assert torch.equal(ref.variance, rows.variance)
@@ -168,6 +169,8 @@ def test_integer_path_equals_plain_reference(pair, kw, monkeypatch):
     block = kw.get("block", 9)
     scale = fast.int_scale(block, 31.0 / 255.0)
     monkeypatch.setattr(fast, "_BAND_ELEMENTS", 2 * 13 * 100)  # several bands, the last one shorter
+    # planes built 3 at a time for the default window (B = 2, 12 + 8 rows, 88 columns; 16 = 5 * 3 + 1)
+    monkeypatch.setattr(fast, "_STEP_ELEMENTS", 3 * 2 * 20 * 88)
     out = fast.match_sad_int(left, right, max_d, kw.get("min_d", 0), block, 31.0 / 255.0, scale, opts)
     assert ref[1].float().mean() > 0.05  # not a vacuous comparison (1x1 windows: ~9 % valid)
     assert torch.equal(out[1], ref[1])
