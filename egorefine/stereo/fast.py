@@ -9,8 +9,8 @@ moves half the bytes of float32 (CPU int16 kernels are vectorised twice as wide)
 winner's, its neighbours' and the runner-up's costs are converted to float.
 
 Every pass is memory-bound, so the work is ordered for the cache: the image is cut into bands of
-rows, and a band's volume is built one disparity plane at a time (raw costs, vertical then
-horizontal window sums on the flattened plane, all contiguous). While a plane is in cache it
+rows, and a band's volume is built a few disparity planes at a time (raw costs, vertical then
+horizontal window sums on the flattened planes, all contiguous). While a plane is in cache it
 updates the running minimum, the index of its first occurrence and the right view's minimum
 (left-right check); it is also stored, and after the band the winner's neighbours are gathered
 from the store with one ``index_select`` and the runner-up (uniqueness) is one reduction over it.
@@ -79,7 +79,7 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
     (up to its float rounding; a right-view tie within ``lr_threshold`` of the left winner passes
     the left-right check here).
 
-    Bands of rows, each built one disparity plane at a time (see the module docstring); the
+    Bands of rows, each built a few disparity planes at a time (see the module docstring); the
     output does not depend on the band size or the number of threads.
 
     Args:
