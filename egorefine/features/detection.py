@@ -40,7 +40,6 @@ _RESPONSES = ("gftt", "harris")
 _SUBPIXEL = ("gradient", "quadratic", "none")
 
 
-
 def corner_response(image: torch.Tensor, response: str = "gftt", k: float = 0.04) -> torch.Tensor:
     """Corner strength of every pixel, in units of squared intensity gradient.
 
