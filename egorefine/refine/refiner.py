@@ -35,7 +35,7 @@ from ..core import (
     check_shape,
     to_grey,
 )
-from ..features import replenish, track
+from ..features import build_pyramid, replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
 from ..stereo import match_stereo
@@ -44,6 +44,9 @@ from .cracks import close_cracks
 from .predict import predict_disparity
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
+
+# pyramid levels of the feature tracker (its default)
+_TRACK_LEVELS = 3
 
 
 class RefinerState(NamedTuple):
@@ -63,6 +66,8 @@ class RefinerState(NamedTuple):
         key_motion: ``(B, 4, 4)`` ``camera_t_T_camera_key``, the motions composed since the keyframe.
         frame: index of the frame this state was produced on.
         since_stereo: frames since stereo last ran (0 = it ran on ``frame``).
+        pyramid: the tracker's image pyramid of ``image`` (levels of ``(B, 1, H_l, W_l)``), built once per frame
+            and reused when tracking into the next one; None: built from ``image`` when needed.
     """
 
     image: torch.Tensor
@@ -79,6 +84,7 @@ class RefinerState(NamedTuple):
     key_motion: torch.Tensor
     frame: int
     since_stereo: int
+    pyramid: tuple[torch.Tensor, ...] | None = None
 
 
 class RefinerOutput(NamedTuple):
@@ -338,8 +344,16 @@ class EgoMotionRefiner(nn.Module):
 
         frame = state.frame + 1
         # 1. track features of t-1 into t, search centred by constant velocity.
-        expected = _expected_positions(state.keypoints, state.disparity, state.valid, state.motion, K, baseline)
-        tracked = track(state.image, grey, state.keypoints, state.weights, predicted=expected)
+        # The search starts at the constant-velocity prediction (from frame 2 on: the first step has no motion yet,
+        # and a zero-flow prediction would only cost a wasted first search). Matches found next to their prediction
+        # skip the forward-backward round trip, and each frame's pyramid is built once and reused as `prev`.
+        expected = None
+        if state.frame > 0:
+            expected = _expected_positions(state.keypoints, state.disparity, state.valid, state.motion, K, baseline)
+        pyramid = tuple(build_pyramid(grey, _TRACK_LEVELS))
+        tracked = track(state.image, grey, state.keypoints, state.weights, predicted=expected, levels=_TRACK_LEVELS,
+                        prev_pyramid=None if state.pyramid is None else list(state.pyramid),
+                        next_pyramid=list(pyramid), fb_predicted=False)
         # 2. ego-motion from the tracks (eq. 2, 3), Z from the previous disparity.
         ego = solve_ego_motion(
             state.keypoints,
@@ -425,7 +439,7 @@ class EgoMotionRefiner(nn.Module):
         else:
             key = (state.key_disparity, state.key_variance, state.key_valid, key_motion, steps)
         new_state = RefinerState(
-            grey, keypoints, weights, disparity, variance, valid, outliers, motion, *key[:4], frame, key[4]
+            grey, keypoints, weights, disparity, variance, valid, outliers, motion, *key[:4], frame, key[4], pyramid
         )
         return out, new_state
 
@@ -445,7 +459,7 @@ class EgoMotionRefiner(nn.Module):
         state = RefinerState(
             grey, keypoints, weights, meas.disparity, meas.variance, meas.valid,
             torch.zeros_like(meas.variance), eye.clone(),
-            meas.disparity, meas.variance, meas.valid, eye.clone(), 0, 0,
+            meas.disparity, meas.variance, meas.valid, eye.clone(), 0, 0, tuple(build_pyramid(grey, _TRACK_LEVELS)),
         )
         return out, state
 
