@@ -19,22 +19,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
-
-# OpenMP threads that spin while waiting turn every one of the matcher's many mid-sized torch
-# ops into a scheduler time slice on a shared, oversubscribed machine (measured here: 2 threads
-# took ~2 s per 640x480 pair spinning, ~0.18 s passive). Must be set before torch loads OpenMP.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from benchmarks._common import markdown_table, set_threads, time_interleaved, update_readme, write_json  # noqa: E402
+from benchmarks._common import (  # noqa: E402
+    markdown_table,
+    omp_setting,
+    set_threads,
+    time_interleaved,
+    update_readme,
+    write_json,
+)
 from egorefine.stereo import match_stereo  # noqa: E402
 
 SIZES = [(640, 480), (1242, 375)]
@@ -202,7 +203,7 @@ def main() -> None:
 
     # a quick run is a smoke run: its own git-ignored file, and the README keeps the full run's table
     write_json("stereo_quick" if args.quick else "stereo",
-               {"threads": args.threads, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+               {"threads": args.threads, "omp_wait_policy": omp_setting(),
                 "quick": args.quick, "results": results,
                 "peak_extra_memory_mb_1242x375_128": memory,
                 "memory_method": "growth of the process RSS high-water mark (VmHWM) in a fresh subprocess"})
@@ -227,7 +228,7 @@ def table(results: list[dict], memory: dict, threads: int) -> str:
                      100 * r["bad2"], 100 * r["density"], time_s, vs_bm, vs_sgbm])
     header = ["data", "size", "D", "method", "EPE px", "bad-1 %", "bad-2 %", "density %", "ms/pair median [IQR]",
               "/BM", "/SGBM"]
-    text = (f"torch and OpenCV with {threads} thread(s) (OMP_WAIT_POLICY=PASSIVE); bad-x and EPE over the "
+    text = (f"torch and OpenCV with {threads} thread(s) ({omp_setting()}); bad-x and EPE over the "
             "pixels each method marks valid, "
             "density = their share of the pixels with known truth; /BM and /SGBM are time ratios in the same run.\n\n"
             + markdown_table(header, rows))
