@@ -59,17 +59,26 @@ def set_threads(n: int) -> None:
     cv2.setNumThreads(n)
 
 
-def time_interleaved(fns: dict[str, Callable[[], object]], repeats: int = 7, warmup: int = 1) -> dict[str, dict]:
-    """Time several callables round-robin; returns ``{name: {"median_ms", "q1_ms", "q3_ms", "runs"}}``."""
+def time_interleaved(fns: dict[str, Callable[[], object]], repeats: int = 7, warmup: int = 1,
+                     burst: int = 1) -> dict[str, dict]:
+    """Time several callables round-robin; returns ``{name: {"median_ms", "q1_ms", "q3_ms", "runs"}}``.
+
+    With ``burst > 1`` each turn calls a method ``burst`` times in a row and keeps the last ``burst - 1``
+    timings: the steady state of a method called frame after frame (as on a video), still interleaved
+    with the others so that a burst of machine load hits all of them alike. (A call right after another
+    method pays for that method's leftovers: OpenMP workers still spinning, memory returned to the OS.)
+    """
     for _ in range(warmup):
         for fn in fns.values():
             fn()
     samples: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeats):
         for name, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            samples[name].append((time.perf_counter() - t0) * 1e3)
+            for i in range(burst):
+                t0 = time.perf_counter()
+                fn()
+                if i > 0 or burst == 1:
+                    samples[name].append((time.perf_counter() - t0) * 1e3)
     return {k: summarize(v) for k, v in samples.items()}
 
 
