@@ -18,9 +18,19 @@ every batch item is matched at once, with no Python loop over features:
 4. On level 0 a few Lucas-Kanade (Gauss-Newton) iterations polish the parabola's estimate:
    the parabola alone is biased by the cost's shape (~0.1-0.3 px), the polish brings the
    error to a few hundredths of a pixel on textured images.
-5. A forward-backward check matches the result back from ``next`` into ``prev`` (one
-   level-0 block match around the keypoint) and rejects features whose round trip misses
-   the start by more than ``fb_threshold`` pixels.
+5. A forward-backward check matches the result back from ``next`` into ``prev``, the search
+   centred on the keypoint, and rejects features whose round trip misses the start by more
+   than ``fb_threshold`` pixels or whose back match lies on its window's edge. The way back
+   needs a reach of its own: a wrong match (a look-alike patch, typically at large motion)
+   found by the full search comes back to the keypoint itself from a small level-0 window,
+   since the keypoint's patch is what it was matched to. So the features found by the full
+   search go back coarse to fine over the ``fb_levels`` finest levels (``search_radius`` on
+   the coarsest of them, default two levels: up to ~14 px); the features found next to their
+   prediction (below) go back with one level-0 match of radius ``refine_radius``, or skip
+   the check with ``fb_predicted=False``. On the KITTI-like street (forward 1.1 m steps, no
+   prediction, 15 pairs of 500 features) the share of accepted tracks off by more than 1 px
+   is 6.3 % with the small level-0 window for all, 5.2 % with the earlier level-1-plus-LK
+   way back, 4.5 % with ``fb_levels=2`` and 4.0 % with ``fb_levels=3``.
 
 Only the live slots (weight > 0) are matched: empty ones are dropped before and filled in
 after (one host synchronisation per call, which also checks the inputs for NaN/Inf). With a
@@ -548,6 +558,11 @@ def _check_values(
     return int(values[5])
 
 
+def _check_fb_levels(fb_levels: int) -> None:
+    if not isinstance(fb_levels, int) or fb_levels < 1:
+        raise ValueRangeError(f"fb_levels: expected an int >= 1, got {fb_levels!r}")
+
+
 def _check_predicted_radius(predicted_radius: int | None) -> None:
     if predicted_radius is not None and (not isinstance(predicted_radius, int) or predicted_radius < 1):
         raise ValueRangeError(f"predicted_radius: expected None or an int >= 1, got {predicted_radius!r}")
@@ -600,6 +615,7 @@ def track(
     lk_iters: int = 1,
     predicted_radius: int | None = 2,
     fb_predicted: bool = True,
+    fb_levels: int = 2,
     prev_pyramid: list[torch.Tensor] | None = None,
     next_pyramid: list[torch.Tensor] | None = None,
 ) -> TrackOutput:
@@ -654,6 +670,10 @@ def track(
         fb_predicted: run the forward-backward check also on the features found by that search
             around the prediction; False lets the prediction's agreement stand in for the check
             there (cheaper; the check then runs only on the features the full search found).
+        fb_levels: pyramid levels of the way back for the features found by the full search
+            (at most ``levels``): their back match searches ``search_radius`` around the keypoint
+            on level ``fb_levels - 1``, then ``refine_radius`` on each finer level. More levels
+            reject more wrong matches at a higher cost (see the module notes).
         prev_pyramid, next_pyramid: optional ``build_pyramid(prev, L)`` / ``build_pyramid(next, L)``
             with ``L >= levels`` (e.g. kept from the call that tracked into ``prev``): saves
             building them. Their level 0 is used instead of ``prev`` / ``next``, which then only
@@ -684,6 +704,7 @@ def track(
     check_same_device(prev, "prev", next=next, keypoints=keypoints, weights=weights, predicted=predicted)
     _check_track_settings(patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters)
     _check_predicted_radius(predicted_radius)
+    _check_fb_levels(fb_levels)
     pyr_prev = _given_pyramid(prev_pyramid, "prev_pyramid", levels, dims)
     pyr_next = _given_pyramid(next_pyramid, "next_pyramid", levels, dims)
     if keypoints.numel() > 0:
@@ -715,6 +736,7 @@ def track(
         lk_iters=lk_iters,
         predicted_radius=None if predicted is None else predicted_radius,
         fb_predicted=fb_predicted,
+        fb_levels=fb_levels,
     )
     zeros = torch.zeros_like(weights)
     if count > n - _SLOT_STEP:  # (almost) every slot is live: no subset
@@ -771,6 +793,7 @@ def _track_live(
     lk_iters: int,
     predicted_radius: int | None,
     fb_predicted: bool,
+    fb_levels: int,
 ) -> TrackOutput:
     """:func:`track` on pyramids, every slot matched (the caller drops the empty ones beforehand)."""
     h, w = pyr_prev[0].shape[-2:]
@@ -811,21 +834,29 @@ def _track_live(
         ok = ok & inside & torch.isfinite(kp_d).all(dim=-1)
         if fb_check:
             # Track the result back into prev, the search centred on the original keypoint, and
-            # measure the round trip. A right match comes back within a fraction of a pixel, so
-            # the way back is one block match on level 0 (radius refine_radius) with its parabola
-            # (~0.1-0.3 px bias, well under fb_threshold): a wrong match lands anywhere in that
-            # window, on its edge or far from the start.
-            # With fb_predicted=False the features found next to their prediction skip it.
+            # measure the round trip; a wrong match lands far from the start or on its window's edge.
+            # A feature found by the full search gets a back search with a reach of its own: on
+            # the fb_levels finest levels, search_radius on the coarsest of them (a level-0 window
+            # of refine_radius around the start mostly confirms a wrong match: the keypoint's own
+            # patch is the best fit of a look-alike within a few pixels of it). A feature found
+            # next to its prediction comes back with a level-0 match of radius refine_radius,
+            # or (fb_predicted=False) the prediction's agreement stands in for the check.
             fb_error, back_ok = _round_trip(
-                pyr_prev[0],
-                pyr_next[0],
+                pyr_prev[:fb_levels],
+                pyr_next[:fb_levels],
                 kp_in,
                 kp_d,
-                ok if fb_predicted else ok & ~found,
+                ok & ~found,
                 patch_size,
+                search_radius,
                 refine_radius,
                 cost,
             )
+            if fb_predicted:
+                near_error, near_ok = _round_trip(
+                    pyr_prev[:1], pyr_next[:1], kp_in, kp_d, ok & found, patch_size, refine_radius, refine_radius, cost
+                )
+                fb_error, back_ok = torch.where(found, near_error, fb_error), back_ok & near_ok
             ok = ok & back_ok & (fb_error <= fb_threshold)
         else:
             fb_error = torch.zeros_like(weights)
@@ -834,33 +865,42 @@ def _track_live(
 
 
 def _round_trip(
-    prev: torch.Tensor,
-    next: torch.Tensor,  # noqa: A002
+    pyr_prev: list[torch.Tensor],
+    pyr_next: list[torch.Tensor],
     kp_in: torch.Tensor,
     kp_out: torch.Tensor,
     check: torch.Tensor,
     patch_size: int,
     radius: int,
+    refine_radius: int,
     cost: str,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Forward-backward round trip of the ``check`` features (B, N): (error in px, not-on-edge flag), both (B, N).
 
-    ``kp_out`` is matched back from ``next`` into ``prev`` around ``kp_in`` (one level-0 block
-    match); features outside ``check`` get error 0 and pass. All features are matched when
-    most are to be checked, else only the subset (one host synchronisation).
+    ``kp_out`` is matched back from ``next`` into ``prev`` around ``kp_in`` (coarse to fine over the
+    given levels, ``radius`` on the coarsest); features outside ``check`` get error 0 and pass.
+    All features are matched when most are to be checked, else only the subset (one host synchronisation).
     """
     n = check.shape[1]
     count = n if n <= _SLOT_STEP else int(check.sum(dim=1).max())
     if count == 0:
         return torch.zeros_like(kp_in[..., 0]), torch.ones_like(check)
+
+    def back(out: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if len(pyr_prev) == 1:
+            pos, _, edge = _match_level(pyr_next[0], pyr_prev[0], out, start, patch_size, radius, cost)
+        else:
+            pos, _, edge = _match_to_level0(pyr_next, pyr_prev, out, start, patch_size, radius, refine_radius, cost)
+        return pos, edge
+
     if count > n - _SLOT_STEP:
-        back, _, edge = _match_level(next, prev, kp_out, kp_in, patch_size, radius, cost)
-        return torch.where(check, (back - kp_in).norm(dim=-1), 0.0), ~(edge & check)
+        pos, edge = back(kp_out, kp_in)
+        return torch.where(check, (pos - kp_in).norm(dim=-1), 0.0), ~(edge & check)
     idx = _first_true(check, count)
     sub_in = _take(kp_in, idx)
-    back, _, edge = _match_level(next, prev, _take(kp_out, idx), sub_in, patch_size, radius, cost)
+    pos, edge = back(_take(kp_out, idx), sub_in)
     sel = _take(check, idx)
-    err = _put(torch.zeros_like(kp_in[..., 0]), idx, torch.where(sel, (back - sub_in).norm(dim=-1), 0.0))
+    err = _put(torch.zeros_like(kp_in[..., 0]), idx, torch.where(sel, (pos - sub_in).norm(dim=-1), 0.0))
     return err, ~_put(torch.zeros_like(check), idx, edge & sel)
 
 
@@ -890,12 +930,14 @@ class Tracker(torch.nn.Module):
         lk_iters: int = 1,
         predicted_radius: int | None = 2,
         fb_predicted: bool = True,
+        fb_levels: int = 2,
     ) -> None:
         super().__init__()
         _check_track_settings(
             patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters
         )
         _check_predicted_radius(predicted_radius)
+        _check_fb_levels(fb_levels)
         self.patch_size = patch_size
         self.search_radius = search_radius
         self.refine_radius = refine_radius
@@ -910,6 +952,7 @@ class Tracker(torch.nn.Module):
         self.lk_iters = lk_iters
         self.predicted_radius = predicted_radius
         self.fb_predicted = fb_predicted
+        self.fb_levels = fb_levels
 
     def forward(
         self,
@@ -941,6 +984,7 @@ class Tracker(torch.nn.Module):
             lk_iters=self.lk_iters,
             predicted_radius=self.predicted_radius,
             fb_predicted=self.fb_predicted,
+            fb_levels=self.fb_levels,
             prev_pyramid=prev_pyramid,
             next_pyramid=next_pyramid,
         )

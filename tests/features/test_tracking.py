@@ -474,3 +474,38 @@ def test_fb_predicted_off_checks_only_features_the_full_search_found(scene):
     torch.testing.assert_close(out.keypoints, full.keypoints, atol=0, rtol=0)
     assert out.weights.sum() >= full.weights.sum()
     assert median_error(out, truth) < 0.1
+
+
+def test_large_flow_without_prediction_rejects_wrong_matches():
+    # KITTI-like street, forward 1.1 m per frame (flow up to tens of px), no prediction: every
+    # feature comes from the full coarse-to-fine search, whose wrong matches (look-alike
+    # patches) the forward-backward check must catch. Measured on these 5 pairs (accepted
+    # tracks off depth edges, off by > 1 px from the true flow / accepted): 72 / 1422 = 5.1 %
+    # with the level-1 + LK way back of commit 52f73ef, 89 / 1459 = 6.1 % with one level-0
+    # match of radius 2 (commit f5f6991), 51 / 1390 = 3.7 % now (fb_levels=2), 30 / 1361 =
+    # 2.2 % with fb_levels=3. The bound is the old code's share.
+    data = pytest.importorskip("egorefine.data")
+    if not hasattr(data, "render_sequence"):
+        pytest.skip("egorefine.data.render_sequence is not available")
+    from egorefine.geometry import project, transform_points, unproject
+
+    seq = data.render_sequence(6, preset="kitti", scene="street", motion="forward", seed=0)
+    prev, nxt = seq.left[:-1], seq.left[1:]
+    h, w_img = prev.shape[-2:]
+    kp, w = detect(prev, max_features=500)
+    out = track(prev, nxt, kp, w)
+    depth = seq.depth[:-1, 0]  # (5, H, W)
+    ix = kp[..., 0].round().long().clamp(1, w_img - 2)
+    iy = kp[..., 1].round().long().clamp(1, h - 2)
+    rows = torch.arange(5).view(5, 1)
+    z = depth[rows, iy, ix]
+    K = seq.K.unsqueeze(0).expand(5, 3, 3)
+    truth = project(transform_points(seq.motions[1:], unproject(kp, z, K)), K)
+    # Off depth edges: depth varies < 10 % over the 3x3 neighbourhood (there the flow is one number).
+    nb = torch.stack([depth[rows, iy + dy, ix + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    smooth = (nb.amax(0) - nb.amin(0)) < 0.1 * z
+    accepted = (out.weights > 0) & (w > 0) & smooth
+    bad = accepted & ((out.keypoints - truth).norm(dim=-1) > 1.0)
+    n_acc, n_bad = int(accepted.sum()), int(bad.sum())
+    assert n_acc >= 1280, n_acc  # the check must not buy its rate by rejecting everything (old: 1422)
+    assert n_bad / n_acc < 0.05, (n_bad, n_acc)
