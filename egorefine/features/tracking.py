@@ -25,12 +25,12 @@ every batch item is matched at once, with no Python loop over features:
    found by the full search comes back to the keypoint itself from a small level-0 window,
    since the keypoint's patch is what it was matched to. So the features found by the full
    search go back coarse to fine over the ``fb_levels`` finest levels (``search_radius`` on
-   the coarsest of them, default two levels: up to ~14 px); the features found next to their
-   prediction (below) go back with one level-0 match of radius ``refine_radius``, or skip
-   the check with ``fb_predicted=False``. On the KITTI-like street (forward 1.1 m steps, no
+   the coarsest of them; by default all ``levels``, the same reach as the way there); the
+   features found next to their prediction (below) go back with one level-0 match of radius
+   ``refine_radius``, or skip the check with ``fb_predicted=False``. On the KITTI-like street (forward 1.1 m steps, no
    prediction, 15 pairs of 500 features) the share of accepted tracks off by more than 1 px
    is 6.3 % with the small level-0 window for all, 5.2 % with the earlier level-1-plus-LK
-   way back, 4.5 % with ``fb_levels=2`` and 4.0 % with ``fb_levels=3``.
+   way back, 5.7 % with ``fb_levels=1``, 4.5 % with 2 and 4.0 % with 3 (the default).
 
 Only the live slots (weight > 0) are matched: empty ones are dropped before and filled in
 after (one host synchronisation per call, which also checks the inputs for NaN/Inf). With a
@@ -558,9 +558,9 @@ def _check_values(
     return int(values[5])
 
 
-def _check_fb_levels(fb_levels: int) -> None:
-    if not isinstance(fb_levels, int) or fb_levels < 1:
-        raise ValueRangeError(f"fb_levels: expected an int >= 1, got {fb_levels!r}")
+def _check_fb_levels(fb_levels: int | None) -> None:
+    if fb_levels is not None and (not isinstance(fb_levels, int) or fb_levels < 1):
+        raise ValueRangeError(f"fb_levels: expected None or an int >= 1, got {fb_levels!r}")
 
 
 def _check_predicted_radius(predicted_radius: int | None) -> None:
@@ -615,7 +615,7 @@ def track(
     lk_iters: int = 1,
     predicted_radius: int | None = 2,
     fb_predicted: bool = True,
-    fb_levels: int = 2,
+    fb_levels: int | None = None,
     prev_pyramid: list[torch.Tensor] | None = None,
     next_pyramid: list[torch.Tensor] | None = None,
 ) -> TrackOutput:
@@ -671,9 +671,11 @@ def track(
             around the prediction; False lets the prediction's agreement stand in for the check
             there (cheaper; the check then runs only on the features the full search found).
         fb_levels: pyramid levels of the way back for the features found by the full search
-            (at most ``levels``): their back match searches ``search_radius`` around the keypoint
-            on level ``fb_levels - 1``, then ``refine_radius`` on each finer level. More levels
-            reject more wrong matches at a higher cost (see the module notes).
+            (None: ``levels``, the forward search's reach; at most ``levels``): their back match
+            searches ``search_radius`` around the keypoint on level ``fb_levels - 1``, then
+            ``refine_radius`` on each finer level. Fewer levels cost less (a few ms per level
+            and call when few features are checked) and reject fewer wrong matches (see the
+            module notes); 1 is one level-0 match of radius ``search_radius``.
         prev_pyramid, next_pyramid: optional ``build_pyramid(prev, L)`` / ``build_pyramid(next, L)``
             with ``L >= levels`` (e.g. kept from the call that tracked into ``prev``): saves
             building them. Their level 0 is used instead of ``prev`` / ``next``, which then only
@@ -736,7 +738,7 @@ def track(
         lk_iters=lk_iters,
         predicted_radius=None if predicted is None else predicted_radius,
         fb_predicted=fb_predicted,
-        fb_levels=fb_levels,
+        fb_levels=levels if fb_levels is None else min(fb_levels, levels),
     )
     zeros = torch.zeros_like(weights)
     if count > n - _SLOT_STEP:  # (almost) every slot is live: no subset
@@ -930,7 +932,7 @@ class Tracker(torch.nn.Module):
         lk_iters: int = 1,
         predicted_radius: int | None = 2,
         fb_predicted: bool = True,
-        fb_levels: int = 2,
+        fb_levels: int | None = None,
     ) -> None:
         super().__init__()
         _check_track_settings(

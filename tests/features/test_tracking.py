@@ -196,7 +196,7 @@ def test_batch_consistency_and_rgb(scene):
 def test_module_matches_function(scene):
     img, kp, w = scene
     nxt, _ = warp(img, 0.6, 0.2)
-    settings = dict(patch_size=7, search_radius=5, levels=2, cost="ssd", fb_threshold=0.5, lk_iters=1)
+    settings = dict(patch_size=7, search_radius=5, levels=2, cost="ssd", fb_threshold=0.5, lk_iters=1, fb_levels=1)
     out = track(img, nxt, kp, w, **settings)
     out_m = Tracker(**settings)(img, nxt, kp, w)
     for a, b in zip(out, out_m, strict=True):
@@ -329,6 +329,10 @@ def test_bad_input(scene):
         track(img, img, kp, w, predicted=kp, predicted_radius=0)
     with pytest.raises(ValueRangeError, match="predicted_radius"):
         Tracker(predicted_radius=1.5)
+    with pytest.raises(ValueRangeError, match="fb_levels"):
+        track(img, img, kp, w, fb_levels=0)
+    with pytest.raises(ValueRangeError, match="fb_levels"):
+        Tracker(fb_levels=1.5)
     pyr = build_pyramid(img, 3)
     with pytest.raises(ValueRangeError, match="prev_pyramid"):
         track(img, img, kp, w, prev_pyramid=pyr[:2])
@@ -482,8 +486,8 @@ def test_large_flow_without_prediction_rejects_wrong_matches():
     # patches) the forward-backward check must catch. Measured on these 5 pairs (accepted
     # tracks off depth edges, off by > 1 px from the true flow / accepted): 72 / 1422 = 5.1 %
     # with the level-1 + LK way back of commit 52f73ef, 89 / 1459 = 6.1 % with one level-0
-    # match of radius 2 (commit f5f6991), 51 / 1390 = 3.7 % now (fb_levels=2), 30 / 1361 =
-    # 2.2 % with fb_levels=3. The bound is the old code's share.
+    # match of radius 2 (commit f5f6991), 51 / 1390 = 3.7 % with fb_levels=2, 30 / 1361 =
+    # 2.2 % with fb_levels=3 (the default). The bound is the old code's share.
     data = pytest.importorskip("egorefine.data")
     if not hasattr(data, "render_sequence"):
         pytest.skip("egorefine.data.render_sequence is not available")
@@ -509,3 +513,20 @@ def test_large_flow_without_prediction_rejects_wrong_matches():
     n_acc, n_bad = int(accepted.sum()), int(bad.sum())
     assert n_acc >= 1280, n_acc  # the check must not buy its rate by rejecting everything (old: 1422)
     assert n_bad / n_acc < 0.05, (n_bad, n_acc)
+
+
+def test_fb_levels_reach_of_the_way_back(scene):
+    # fb_levels beyond levels is clamped (same as the default, all levels); every setting keeps
+    # the right tracks of a 9 px shift and reports a round trip of a fraction of a pixel for them.
+    img, kp, w = scene
+    nxt, m = warp(img, 9.0, -6.5)
+    truth = apply(m, kp)
+    default = track(img, nxt, kp, w)
+    for a, b in zip(default, track(img, nxt, kp, w, fb_levels=7), strict=True):
+        assert torch.equal(a, b)
+    for fb_levels in (1, 2, 3):
+        out = track(img, nxt, kp, w, fb_levels=fb_levels)
+        ok = out.weights[0] > 0
+        assert ok.sum() >= 100, (fb_levels, int(ok.sum()))
+        assert median_error(out, truth) < 0.1
+        assert out.fb_error[0][ok].max() <= 1.0 and out.fb_error[0][ok].median() < 0.3
