@@ -1,6 +1,7 @@
 """Dense stereo matching: cost volumes (SAD, ZNCC, census), box or SGM aggregation,
 winner-takes-all with sub-pixel fit or soft-argmin, and left-right / uniqueness / texture checks."""
 
+from ._sgm_numba import release_workspace as release_sgm_workspace
 from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
 from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, match_stereo
 from .sgm import sgm_aggregate
@@ -12,6 +13,7 @@ __all__ = [
     "StereoOutput",
     "cost_volume",
     "sgm_aggregate",
+    "release_sgm_workspace",
     "prefilter_xsobel",
     "census_transform",
     "COSTS",

@@ -171,3 +171,22 @@ def test_numba_compiles_without_a_cache_location(monkeypatch):
         return x + 1
 
     assert _sgm_numba._jit(f)(1) == 2
+
+
+@needs_numba
+def test_reused_work_volumes_do_not_leak_between_calls():
+    # The work volumes are kept per thread and reused by the next call of the same size: a call on other images
+    # (and on another size) in between must not change a result.
+    kw = {"cost": "census", "aggregation": "sgm", "block_size": 5}
+    _sgm_numba.release_workspace()
+    left, right = _random_pair(1, 20, 36, seed=11)
+    first = match_stereo(left, right, 8, **kw)
+    assert {a.shape for a in _sgm_numba._workspace.arrays.values()} == {(20, 36, 8)}
+    other_l, other_r = _random_pair(1, 20, 36, seed=12, shift=5)
+    match_stereo(other_l, other_r, 8, **kw)
+    match_stereo(*_random_pair(1, 15, 28, seed=13), 6, **kw)  # another size: the volumes are replaced
+    again = match_stereo(left, right, 8, **kw)
+    for a, b in zip(first, again, strict=True):
+        assert torch.equal(a, b)
+    _sgm_numba.release_workspace()
+    assert _sgm_numba._workspace.arrays == {}
