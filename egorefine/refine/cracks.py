@@ -1,10 +1,11 @@
 """Close the cracks of a forward-splatted prediction by looking each hole pixel up in the source map.
 
 Forward splatting (:func:`~egorefine.refine.predict_disparity`) tiles the target only up to a limited
-magnification (its tests: 90 % of the seen pixels land at 3x, 3.6x leaves a third of them as holes). The refiner predicts from its last verified keyframe with the motion composed
-since then, so a near surface can be magnified far more (a road 5 m ahead, four 1.1 m steps later, is 8 times
-larger), and such surfaces come out as holes although the keyframe saw them. Disocclusions are holes too, but
-there the keyframe saw another surface.
+magnification (its tests: 90 % of the seen pixels land at 3x; 3.6x leaves a third of them as holes). The
+refiner predicts from its last verified keyframe with the motion composed since then, so a near surface can
+be magnified far more (a road 5 m ahead, four 1.1 m steps later, is 8 times larger), and such surfaces come
+out as holes although the keyframe saw them. Disocclusions are holes too, but there the keyframe saw another
+surface.
 
 :func:`close_cracks` tells the two apart by an inverse warp. A hole pixel ``T`` starts from its filled value
 ``d`` (the background rule of :func:`~egorefine.refine.fill_holes_background`). Sent back into the keyframe at
@@ -25,7 +26,7 @@ from __future__ import annotations
 import torch
 
 from ..core import check_shape
-from .predict import Prediction
+from .predict import Prediction, _pixel_motion
 
 __all__ = ["close_cracks"]
 
@@ -83,15 +84,9 @@ def close_cracks(
         dtype = key_disparity.dtype
         b_idx, pix = idx.div(H * W, rounding_mode="floor"), idx.remainder(H * W)
         ys, xs = pix.div(W, rounding_mode="floor").to(dtype), pix.remainder(W).to(dtype)
-        fx, fy, cx, cy = K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]
-        # key_T_t in pixel-homogeneous form: h = M (u, v, 1) + m d, M = K R' K^-1, m = K t' / (f B)
-        R = motion[:, :3, :3].transpose(1, 2)
-        t = -(R @ motion[:, :3, 3:])[..., 0]
-        zero, one = torch.zeros_like(fx), torch.ones_like(fx)
-        Kp = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], -1).view(B, 3, 3)
-        Kinv = torch.stack([1 / fx, zero, -cx / fx, zero, 1 / fy, -cy / fy, zero, zero, one], -1).view(B, 3, 3)
-        M = (Kp @ R @ Kinv)[b_idx]  # (N, 3, 3): per point, a gather of 9 numbers
-        m = ((Kp @ t[..., None])[..., 0] / (fx * baseline)[:, None])[b_idx]  # (N, 3)
+        # key_T_t in pixel-homogeneous form (the splat's own back-projection): h = G (u, v, 1) + e d
+        _, _, G, e = _pixel_motion(motion, K, baseline)
+        M, m = G[b_idx], e[b_idx]  # (N, 3, 3), (N, 3): per point, a gather of 12 numbers
         base = M[:, :, 0] * xs[:, None] + M[:, :, 1] * ys[:, None] + M[:, :, 2]  # (N, 3)
         flat_d, flat_var = key_disparity.reshape(-1), key_variance.reshape(-1)
         flat_ok = key_valid.reshape(-1)
