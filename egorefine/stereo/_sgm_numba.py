@@ -40,32 +40,20 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
+from ..core._jit import AVAILABLE
+from ..core._jit import jit as _jit
+
 __all__ = ["AVAILABLE", "census_sgm_select", "release_workspace"]
 
-try:  # numba is a dependency, but keep the package importable (torch path) without it
-    import numba
+if AVAILABLE:  # numba is a dependency, but the package stays importable (torch path) without it
     from llvmlite import ir as _llvm_ir
     from numba.core import types as _types
     from numba.extending import intrinsic
-except ImportError:  # pragma: no cover - exercised by the fallback test through the flag
-    numba = None
-
-AVAILABLE = numba is not None
 
 # census bits per int32 word (window 7 has 48 bits: two words)
 _WORD_BITS = 24
 # the encoded value of an out-of-view candidate in the right-view search: INVALID_COST's float32 bits
 _INVALID_CODE = int(np.array(1.0e6, dtype=np.float32).view(np.int32))
-
-
-def _jit(fn=None, inline="never"):
-    """``njit(cache=True, nogil=True)``; without a writable cache location numba cannot cache: compile only."""
-    if fn is None:
-        return lambda f: _jit(f, inline)
-    try:
-        return numba.njit(cache=True, nogil=True, fastmath=False, inline=inline)(fn)
-    except RuntimeError:  # "cannot cache function ...: no locator available"
-        return numba.njit(cache=False, nogil=True, fastmath=False, inline=inline)(fn)
 
 
 if AVAILABLE:

@@ -156,24 +156,6 @@ def test_numba_textureless_pair_is_all_invalid_without_nan():
 
 
 @needs_numba
-def test_numba_compiles_without_a_cache_location(monkeypatch):
-    # numba raises RuntimeError at decoration when no cache directory is writable: compile without caching
-    real = _sgm_numba.numba.njit
-
-    def njit(*args, cache=False, **kwargs):
-        if cache:
-            raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
-        return real(*args, cache=cache, **kwargs)
-
-    monkeypatch.setattr(_sgm_numba.numba, "njit", njit)
-
-    def f(x):
-        return x + 1
-
-    assert _sgm_numba._jit(f)(1) == 2
-
-
-@needs_numba
 def test_reused_work_volumes_do_not_leak_between_calls():
     # The work volumes are kept per thread and reused by the next call of the same size: a call on other images
     # (and on another size) in between must not change a result.
