@@ -7,7 +7,9 @@ and callers take their torch path (which is also the reference for GPU tensors a
 
 from __future__ import annotations
 
-__all__ = ["AVAILABLE", "jit", "numba"]
+from concurrent.futures import ThreadPoolExecutor
+
+__all__ = ["AVAILABLE", "Workers", "bands", "jit", "numba"]
 
 try:
     import numba
@@ -26,3 +28,30 @@ def jit(fn=None, inline: str = "never"):
         return numba.njit(cache=True, nogil=True, fastmath=False, inline=inline)(fn)
     except RuntimeError:  # "cannot cache function ...: no locator available"
         return numba.njit(cache=False, nogil=True, fastmath=False, inline=inline)(fn)
+
+
+def bands(n: int, parts: int) -> list[tuple[int, int]]:
+    """``[start, stop)`` ranges that split ``n`` rows (or columns) into at most ``parts`` nearly equal bands."""
+    step = -(-n // max(1, parts))
+    return [(start, min(n, start + step)) for start in range(0, n, step)]
+
+
+class Workers:
+    """A pool of ``threads`` Python threads for nogil kernels (none for one thread); ``map`` is a barrier.
+
+    Threads rather than numba's ``parallel=True``, whose threading layer can clash with torch's OpenMP.
+    """
+
+    def __init__(self, threads: int) -> None:
+        self.pool = ThreadPoolExecutor(threads) if threads > 1 else None
+
+    def map(self, fn, items) -> list:
+        """``[fn(item) for item in items]``, run on the pool; returns when all are done."""
+        return list(self.pool.map(fn, items) if self.pool is not None else map(fn, items))
+
+    def __enter__(self) -> Workers:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            self.pool.shutdown()

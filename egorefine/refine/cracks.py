@@ -18,7 +18,8 @@ keyframe saw this pixel's surface at the place and depth the motion predicts. A 
 back at the background's depth it lands on the foreground that hid it, whose disparity does not match.
 
 Accepted pixels get the sampled value and the sampled variance carried like the splat's (``var_k h_z^2`` plus the
-process noise) and become valid; rejected ones stay holes.
+process noise) and become valid; rejected ones stay holes. Float32 CPU maps take a compiled loop over the hole
+pixels (:mod:`egorefine.refine._predict_numba`) with the same formulas.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import torch
 
 from ..core import check_shape
+from . import _predict_numba
 from .predict import Prediction, _pixel_motion
 
 __all__ = ["close_cracks"]
@@ -77,6 +79,21 @@ def close_cracks(
     check_shape(prediction.disparity, ["B", "1", "H", "W"], "prediction.disparity", dims)
     check_shape(motion, ["B", "4", "4"], "motion", dims)
     B, _, H, W = key_disparity.shape
+    maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
+    if bool(prediction.valid.all()):
+        return prediction
+    if (_predict_numba.AVAILABLE and key_disparity.device.type == "cpu"
+            and all(t.dtype == torch.float32 for t in (key_disparity, key_variance, *maps[:2], maps[3]))):
+        # the same look-ups compiled (egorefine.refine._predict_numba)
+        _, _, G, e = _pixel_motion(motion, K, baseline)
+        valid = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
+        out = _predict_numba.close_cracks(
+            *(t.detach()[:, 0].contiguous() for t in maps), key_disparity.detach()[:, 0], key_variance.detach()[:, 0],
+            valid[:, 0], G.detach().to(torch.float32), e.detach().to(torch.float32), iterations, tolerance,
+            surface_tolerance, process_noise,
+        )
+        disparity, variance, valid, confidence = (t[:, None] for t in out)
+        return prediction._replace(disparity=disparity, variance=variance, valid=valid, confidence=confidence)
     with torch.no_grad():
         idx = (~prediction.valid).view(-1).nonzero().squeeze(1)  # flat indices of the hole pixels
         if idx.numel() == 0:

@@ -35,12 +35,12 @@ faulting in ~100 MB of fresh pages costs 6-13 ms at 640x480 with 64 disparities 
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE
+from ..core._jit import AVAILABLE, Workers
+from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 
 __all__ = ["AVAILABLE", "census_sgm_select", "release_workspace"]
@@ -437,11 +437,6 @@ if AVAILABLE:
                     ok[y, x] = abs(max_d - 1 - jright[xr] - d_left) <= lr_threshold
 
 
-def _bands(n: int, parts: int) -> list[tuple[int, int]]:
-    step = -(-n // parts)
-    return [(a, min(n, a + step)) for a in range(0, n, step)]
-
-
 _workspace = threading.local()
 
 
@@ -505,12 +500,8 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     # vertical paths are independent per column; diagonal ones cross columns: one band
     col_bands = _bands(w, threads) if paths == 4 else [(0, w)]
     volumes = []
-    pool = ThreadPoolExecutor(threads) if threads > 1 else None
 
-    def run(fn, items):  # phases are separated by these barriers
-        list(pool.map(fn, items) if pool is not None else map(fn, items))
-
-    def item(i: int) -> None:
+    def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
         census = np.empty((2, words, h, w), dtype=np.int32)
         pad = census_window // 2
         run(lambda k: _census(np.pad((left, right)[k][i, 0], pad, mode="edge"), census_window, census[k]), (0, 1))
@@ -530,11 +521,8 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
             run(lambda band: _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[1], opts["lr_threshold"],
                                             band[0], band[1]), row_bands)
 
-    try:
+    with Workers(threads) as workers:
         for i in range(b):
-            item(i)
-    finally:
-        if pool is not None:
-            pool.shutdown()
+            item(i, workers.map)
     as_t = lambda a: torch.from_numpy(a).unsqueeze(1)  # noqa: E731
     return as_t(disparity), as_t(valid), as_t(variance), torch.stack(volumes) if return_volume else None

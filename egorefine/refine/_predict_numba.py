@@ -1,0 +1,381 @@
+"""CPU inference path of the hard splat and of crack closing, compiled with numba.
+
+:func:`egorefine.refine.predict_disparity` in hard mode with refinement is about 30 small torch
+passes over the image (moving the points, an ``amax`` scatter, the 3x3 z-buffer maximum, the
+gathered check, the refinement's four gathered corners, hole filling), each one reading and
+writing full-size maps: about 14 ms per 640x480 frame on two threads, the largest part of the
+refiner's loop. Every target pixel's work depends only on its own values and a few gathered
+ones, so here it is three loops:
+
+1. (one thread per batch item) move every source point (PAPER.md eq. 1 in inverse-depth form),
+   write the padded source maps and scatter its z-buffer key;
+2. (row bands on threads) per target pixel: the 3x3 z-buffer maximum, the candidate, the check in
+   frame ``t-1``, the start value and the inverse-warp refinement steps;
+3. (row bands on threads) the background hole fill and the outputs.
+
+They repeat the torch path's float32 formulas in the same order (see :mod:`egorefine.refine.predict`
+for what each step means), so the decisions agree with it; values may differ in the last bits
+where torch's vectorised kernels fuse a multiply and an add (``lerp``, ``addcmul``): tests compare
+the two paths on rendered sequences. :func:`close_cracks` does the inverse-warp look-ups
+of :func:`egorefine.refine.close_cracks` for the hole pixels in one loop.
+
+Used for float32 CPU tensors that need no gradient when numba is installed (``AVAILABLE``); the
+torch path stays the reference for GPU tensors, float64 and autograd.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import torch
+
+from ..core._jit import AVAILABLE, Workers
+from ..core._jit import bands as _bands
+from ..core._jit import jit as _jit
+
+__all__ = ["AVAILABLE", "hard_splat", "close_cracks"]
+
+_F = np.float32
+# the constants of egorefine.refine.predict, as float32
+_MIN = _F(1e-3)  # _MIN_DEPTH_RATIO
+_BIG = _F(min(1e30, float(np.finfo(np.float32).max) ** 0.5))  # _big(float32)
+_PAD = 2  # margin of the padded source layout (predict._PAD)
+
+
+if AVAILABLE:
+
+    @_jit(inline="always")
+    def _lerp(start, end, weight):
+        """torch.lerp's formula (exact at weights 0 and 1); both branches computed, one selected (no jump)."""
+        low = start + weight * (end - start)
+        high = end - (end - start) * (_F(1.0) - weight)
+        return low if abs(weight) < _F(0.5) else high
+
+    @_jit
+    def _move_sources(d, ok_in, var, has_var, A, a, y0, y1, key_src, key_new, var_p, at, keys):
+        """Step 1 for source rows ``y0:y1`` of one batch item: move the points (eq. 1), write the padded source
+        maps (``-big`` where invalid), each point's z-buffer cell ``at`` and key (-1: none)."""
+        H, W = d.shape
+        wp = key_src.shape[1]
+        bits = np.empty(W, np.float32)  # d' written here is read back as int32: its z-buffer key
+        as_int = bits.view(np.int32)
+        for y in range(y0, y1):
+            yf = _F(y)
+            for x in range(W):
+                xf = _F(x)
+                dv = d[y, x]
+                pz = ((A[2, 0] * xf + A[2, 2]) + A[2, 1] * yf) + dv * a[2]
+                ok = ok_in[y, x] & (pz > _MIN)
+                inv = _F(1.0) / max(pz, _MIN)
+                d_new = dv * inv
+                if has_var:
+                    var_p[y + _PAD, x + _PAD] = var[y, x] * inv * inv
+                key_src[y + _PAD, x + _PAD] = dv if ok else -_BIG
+                key_new[y + _PAD, x + _PAD] = d_new if ok else -_BIG
+                tx = np.rint((((A[0, 0] * xf + A[0, 2]) + A[0, 1] * yf) + dv * a[0]) * inv)
+                ty = np.rint((((A[1, 0] * xf + A[1, 2]) + A[1, 1] * yf) + dv * a[1]) * inv)
+                tx = min(max(tx, _F(-_PAD)), _F(W + 1))
+                ty = min(max(ty, _F(-_PAD)), _F(H + 1))
+                at[y, x] = (np.int32(ty) + _PAD) * wp + np.int32(tx) + _PAD
+                bits[x] = d_new
+            for x in range(W):
+                # the bits of d' >= 0 as int32 order like the values: the maximum key is the nearest surface
+                keys[y, x] = as_int[x] if key_new[y + _PAD, x + _PAD] >= 0 else -1
+        if has_var:  # replicated margins: a target just outside takes the border's variance
+            for y in range(y0 + _PAD, y1 + _PAD):
+                for x in range(_PAD):
+                    var_p[y, x] = var_p[y, _PAD]
+                for x in range(_PAD + W, wp):
+                    var_p[y, x] = var_p[y, _PAD + W - 1]
+
+    @_jit
+    def _scatter(at, keys, zbuf, var_p, has_var):
+        """Step 1, sequential part: the z-buffer keeps each cell's largest key; the variance's margin rows."""
+        H, W = at.shape
+        flat = zbuf.reshape(-1)
+        for y in range(H):
+            for x in range(W):
+                key, cell = keys[y, x], at[y, x]
+                if key > flat[cell]:
+                    flat[cell] = key
+        if has_var:
+            for y in range(_PAD):
+                var_p[y, :] = var_p[_PAD, :]
+            for y in range(_PAD + H, var_p.shape[0]):
+                var_p[y, :] = var_p[_PAD + H - 1, :]
+
+    @_jit
+    def _targets(zbuf, zval, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1,
+                 est_out, var_out, landed_out):
+        """Steps 2 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big: none)."""
+        H, W = est_out.shape
+        lowest = _BIG
+        # the nearest surface within one pixel: 3x3 maximum of the keys, separable (rows, then columns); the float
+        # view of the int32 maximum is its d'
+        rows_max = np.empty((y1 - y0 + 2, W), np.int32)
+        for r in range(y1 - y0 + 2):
+            j = y0 + r + _PAD - 1
+            for x in range(W):
+                i = x + _PAD
+                rows_max[r, x] = max(max(zbuf[j, i - 1], zbuf[j, i]), zbuf[j, i + 1])
+        near_row = np.empty(W, np.int32)
+        near_val = near_row.view(np.float32)
+        # a row at a time, one pass per step: the pixels of a pass are independent, so the CPU overlaps their long
+        # dependency chains (division, gather, compare, interpolation); a pixel's steps in one loop run 3x slower
+        est_r = np.empty(W, np.float32)
+        wp = key_src.shape[1]
+        uwp = np.uint64(wp)
+        src_flat = key_src.reshape(-1)
+        landed_r = np.empty(W, np.bool_)
+        fallback_r = np.empty(W, np.bool_)
+        for y in range(y0, y1):
+            yf = _F(y)
+            r = y - y0
+            for x in range(W):
+                near_row[x] = max(max(rows_max[r, x], rows_max[r + 1, x]), rows_max[r + 2, x])
+            for x in range(W):
+                xf = _F(x)
+                near = near_row[x]
+                near_v = near_val[x] if near >= 0 else _F(0.0)
+                own_v = zval[y + _PAD, x + _PAD] if zbuf[y + _PAD, x + _PAD] >= 0 else _F(0.0)
+                cand = own_v if near_v - own_v < tol else near_v
+                # the check: the target sent back at the candidate's depth, compared in frame t-1
+                hz = ((G[2, 0] * xf + G[2, 2]) + G[2, 1] * yf) + cand * e[2]
+                inv_h = _F(1.0) / max(hz, _MIN)
+                sx = (((G[0, 0] * xf + G[0, 2]) + G[0, 1] * yf) + cand * e[0]) * inv_h
+                sy = (((G[1, 0] * xf + G[1, 2]) + G[1, 1] * yf) + cand * e[1]) * inv_h
+                px = np.int64(np.rint(min(max(sx, _F(-1.0)), _F(W)))) + _PAD
+                py = np.int64(np.rint(min(max(sy, _F(-1.0)), _F(H)))) + _PAD
+                landed = (abs(key_src[py, px] - inv_h * cand) < tol) & (hz > _MIN) & (near >= 0)
+                est = key_new[py, px]
+                fallback_r[x] = (est >= 0) & (near >= 0) & ~landed
+                landed_r[x] = landed
+                est_r[x] = max(est, _F(0.0))
+                if has_var:
+                    var_out[y, x] = var_p[py, px]
+            # inverse-warp refinement; the first step decides the fallbacks and re-checks every target
+            for step in range(iterations):
+                for x in range(W):
+                    xf = _F(x)
+                    est = est_r[x]
+                    hz = ((G[2, 0] * xf + G[2, 2]) + G[2, 1] * yf) + est * e[2]
+                    hz_ok = hz > _MIN
+                    inv_h = _F(1.0) / max(hz, _MIN)
+                    sx = (((G[0, 0] * xf + G[0, 2]) + G[0, 1] * yf) + est * e[0]) * inv_h
+                    sy = (((G[1, 0] * xf + G[1, 2]) + G[1, 1] * yf) + est * e[1]) * inv_h
+                    expect = est * inv_h
+                    qz = (A[2, 2] + sx * A[2, 0]) + sy * A[2, 1]
+                    fx0 = np.floor(min(max(sx, _F(-_PAD)), _F(W + 1)))
+                    fy0 = np.floor(min(max(sy, _F(-_PAD)), _F(H + 1)))
+                    fx = sx - fx0
+                    fy = sy - fy0
+                    # (unsigned flat indices: no negative-index handling per access)
+                    c0 = np.uint64((np.int64(fy0) + _PAD) * wp + np.int64(fx0) + _PAD)
+                    g0, g1 = src_flat[c0], src_flat[c0 + np.uint64(1)]
+                    g2, g3 = src_flat[c0 + uwp], src_flat[c0 + uwp + np.uint64(1)]
+                    s0 = abs(g0 - expect) < tol
+                    s1 = abs(g1 - expect) < tol
+                    s2 = abs(g2 - expect) < tol
+                    s3 = abs(g3 - expect) < tol
+                    d_src = _lerp(_lerp(g0 if s0 else expect, g1 if s1 else expect, fx),
+                                  _lerp(g2 if s2 else expect, g3 if s3 else expect, fx), fy)
+                    qz = qz + d_src * a[2]
+                    new = d_src / max(qz, _MIN)
+                    landed = landed_r[x]
+                    if step == 0:
+                        # the nearest neighbour must be on the start's surface, and the step small
+                        right, down = np.rint(fx) > 0, np.rint(fy) > 0
+                        nearest_same = (s3 if right else s2) if down else (s1 if right else s0)
+                        landed = (landed | fallback_r[x]) & nearest_same & (abs(new - est) <= tol) & hz_ok
+                        landed_r[x] = landed
+                    if hz_ok & (qz > _MIN) & landed:
+                        est_r[x] = new
+            for x in range(W):
+                est_out[y, x] = est_r[x]
+                landed_out[y, x] = landed_r[x]
+                if landed_r[x] and est_r[x] < lowest:
+                    lowest = est_r[x]
+        return lowest
+
+    @_jit
+    def _fill(est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance, y0, y1,
+              disparity, variance, confidence):
+        """Step 3 for rows ``y0:y1``: the background hole fill (predict.fill_holes_background) and the outputs."""
+        H, W = est.shape
+        for y in range(y0, y1):
+            if fill_holes:
+                # nearest landed value on the left (+big: none), then the minimum with the one on the right
+                last = _BIG
+                for x in range(W):
+                    if landed[y, x]:
+                        last = est[y, x]
+                    disparity[y, x] = last
+                row_fill = image_fill if last >= _BIG else _BIG  # a row without a landed pixel
+                last = _BIG
+                for x in range(W - 1, -1, -1):
+                    if landed[y, x]:
+                        last = est[y, x]
+                    disparity[y, x] = min(min(disparity[y, x], last), row_fill)
+            else:
+                for x in range(W):
+                    disparity[y, x] = est[y, x] if landed[y, x] else _F(0.0)
+            for x in range(W):
+                if landed[y, x]:
+                    v = (est_var[y, x] + process_noise) if has_var else process_noise
+                    variance[y, x] = v
+                    confidence[y, x] = _F(1.0) / (_F(1.0) + v)
+                else:
+                    variance[y, x] = hole_variance
+                    confidence[y, x] = _F(0.0)
+
+    @_jit
+    def _close_cracks(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y0, y1,
+                      disparity, variance, valid, confidence):
+        """close_cracks for the hole pixels of rows ``y0:y1`` of one batch item, in place: inverse-warp look-ups in
+        the keyframe (the formulas of :func:`egorefine.refine.close_cracks`)."""
+        H, W = key_d.shape
+        for y in range(y0, y1):
+            yf = _F(y)
+            for x in range(W):
+                if valid[y, x]:
+                    continue
+                xf = _F(x)
+                base0 = (G[0, 0] * xf + G[0, 1] * yf) + G[0, 2]
+                base1 = (G[1, 0] * xf + G[1, 1] * yf) + G[1, 2]
+                base2 = (G[2, 0] * xf + G[2, 1] * yf) + G[2, 2]
+                dv = disparity[y, x]
+                ok = True
+                step = _F(0.0)
+                var = _F(0.0)
+                hz = _F(1.0)
+                for _ in range(iterations):
+                    h2 = base2 + e[2] * dv
+                    hz = max(h2, _MIN)
+                    sx = (base0 + e[0] * dv) / hz
+                    sy = (base1 + e[1] * dv) / hz
+                    inside = (h2 > _MIN) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
+                    x0 = min(np.floor(min(max(sx, _F(0.0)), _F(W - 1))), _F(W - 2))
+                    y0_ = min(np.floor(min(max(sy, _F(0.0)), _F(H - 1))), _F(H - 2))
+                    ax = min(max(sx - x0, _F(0.0)), _F(1.0))
+                    ay = min(max(sy - y0_, _F(0.0)), _F(1.0))
+                    i, j = np.int64(x0), np.int64(y0_)
+                    c0, c1, c2, c3 = key_d[j, i], key_d[j, i + 1], key_d[j + 1, i], key_d[j + 1, i + 1]
+                    spread = max(max(c0, c1), max(c2, c3)) - min(min(c0, c1), min(c2, c3))
+                    sample_ok = (inside & key_ok[j, i] & key_ok[j, i + 1] & key_ok[j + 1, i] & key_ok[j + 1, i + 1]
+                                 & (spread <= surface_tolerance))
+                    w0, w1 = (_F(1.0) - ax) * (_F(1.0) - ay), ax * (_F(1.0) - ay)
+                    w2, w3 = (_F(1.0) - ax) * ay, ax * ay
+                    value = ((w0 * c0 + w1 * c1) + w2 * c2) + w3 * c3
+                    var = (((w0 * key_var[j, i] + w1 * key_var[j, i + 1]) + w2 * key_var[j + 1, i])
+                           + w3 * key_var[j + 1, i + 1])
+                    new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
+                    step = abs(new - dv)
+                    ok = ok & sample_ok
+                    if sample_ok:
+                        dv = new
+                if ok and step <= tolerance:
+                    v = var * (hz * hz) + process_noise
+                    disparity[y, x] = dv
+                    variance[y, x] = v
+                    valid[y, x] = True
+                    confidence[y, x] = _F(1.0) / (_F(1.0) + v)
+
+
+_workspace_store = threading.local()
+
+
+def _workspace(H: int, W: int, has_var: bool) -> tuple[np.ndarray, ...]:
+    """The calling thread's padded maps for an ``H x W`` splat, kept for the next call of the same size (their
+    margins stay ``-big``: the kernels write only the interior)."""
+    store = getattr(_workspace_store, "arrays", None)
+    if store is None or store[0] != (H, W):
+        hp, wp = H + 2 * _PAD + 1, W + 2 * _PAD + 1
+        arrays = (np.full((hp, wp), -_BIG, np.float32), np.full((hp, wp), -_BIG, np.float32),
+                  np.empty((hp, wp), np.float32), np.empty((hp, wp), np.int32), np.empty((H, W), np.int32),
+                  np.empty((H, W), np.int32))
+        store = _workspace_store.arrays = ((H, W), arrays)
+    key_src, key_new, var_p, zbuf, at, keys = store[1]
+    return key_src, key_new, var_p if has_var else var_p[:1, :1], zbuf, at, keys
+
+
+def hard_splat(d: torch.Tensor, var: torch.Tensor | None, src_ok: torch.Tensor, A: torch.Tensor, a: torch.Tensor,
+               G: torch.Tensor, e: torch.Tensor, surface_tolerance: float, refine_iterations: int,
+               fill_holes: bool, process_noise: float, hole_variance: float, threads: int | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Hard splat with ``refine_iterations >= 1`` refinement steps, hole fill and outputs (float32 CPU, no gradient).
+
+    Args:
+        d, var, src_ok: ``(B, H, W)`` source disparity, its variance (or None) and validity (``d >= 0`` and valid).
+        A, a, G, e: the pixel-homogeneous motion of ``predict._pixel_motion`` (float32).
+        surface_tolerance, refine_iterations, fill_holes, process_noise, hole_variance: as ``predict_disparity``.
+        threads: worker threads (None: ``torch.get_num_threads()``).
+
+    Returns:
+        ``(disparity, variance, confidence, landed)`` each ``(B, H, W)``, as ``predict_disparity``'s fields (holes
+        filled or 0, ``hole_variance`` and confidence 0 on holes).
+    """
+    B, H, W = d.shape
+    threads = max(1, threads or torch.get_num_threads())
+    dn, okn = d.numpy(), src_ok.numpy()
+    varn = var.numpy() if var is not None else np.zeros((B, 1, 1), np.float32)
+    An, an, Gn, en = (t.numpy() for t in (A, a, G, e))
+    tol = _F(surface_tolerance)
+    disparity = np.empty((B, H, W), np.float32)
+    variance = np.empty((B, H, W), np.float32)
+    confidence = np.empty((B, H, W), np.float32)
+    landed = np.empty((B, H, W), np.bool_)
+    bands = _bands(H, threads)
+
+    def item(i: int, run) -> None:
+        key_src, key_new, var_p, zbuf, at, keys = _workspace(H, W, var is not None)
+        run(lambda band: _move_sources(dn[i], okn[i], varn[i], var is not None, An[i], an[i], band[0], band[1],
+                                       key_src, key_new, var_p, at, keys), bands)
+        zbuf.fill(-1)
+        _scatter(at, keys, zbuf, var_p, var is not None)
+        est = np.empty((H, W), np.float32)
+        est_var = np.empty((H, W), np.float32) if var is not None else est
+        lows = run(lambda band: _targets(zbuf, zbuf.view(np.float32), key_src, key_new, var_p, var is not None,
+                                         An[i], an[i], Gn[i], en[i], tol, refine_iterations, band[0], band[1],
+                                         est, est_var, landed[i]), bands)
+        low = min(lows)
+        image_fill = _F(0.0) if low >= _BIG else _F(low)
+        run(lambda band: _fill(est, est_var, landed[i], var is not None, fill_holes, image_fill, _F(process_noise),
+                               _F(hole_variance), band[0], band[1], disparity[i], variance[i], confidence[i]), bands)
+
+    with Workers(threads) as workers:
+        for i in range(B):
+            item(i, workers.map)
+    as_t = torch.from_numpy
+    return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed)
+
+
+def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.Tensor, confidence: torch.Tensor,
+                 key_disparity: torch.Tensor, key_variance: torch.Tensor, key_valid: torch.Tensor, G: torch.Tensor,
+                 e: torch.Tensor, iterations: int, tolerance: float, surface_tolerance: float, process_noise: float,
+                 threads: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`egorefine.refine.close_cracks` on float32 CPU maps: new ``(disparity, variance, valid, confidence)``.
+
+    Args:
+        disparity, variance, valid, confidence: ``(B, H, W)`` the prediction's maps (copied, not changed).
+        key_disparity, key_variance, key_valid: ``(B, H, W)`` keyframe maps.
+        G, e: ``(B, 3, 3)``, ``(B, 3)`` the back-projection of ``predict._pixel_motion``.
+        iterations, tolerance, surface_tolerance, process_noise: as ``close_cracks``.
+        threads: worker threads (None: ``torch.get_num_threads()``).
+    """
+    B, H, W = disparity.shape
+    threads = max(1, threads or torch.get_num_threads())
+    outs = [t.clone() for t in (disparity, variance, valid, confidence)]
+    d, var, ok, conf = (t.numpy() for t in outs)
+    kd, kv, kok = (t.contiguous().numpy() for t in (key_disparity, key_variance, key_valid))
+    Gn, en = G.numpy(), e.numpy()
+    bands = _bands(H, threads)
+    args = (max(1, int(iterations)), _F(tolerance), _F(surface_tolerance), _F(process_noise))
+
+    def band(job: tuple[int, tuple[int, int]]) -> None:
+        i, (y0, y1) = job
+        _close_cracks(kd[i], kv[i], kok[i], Gn[i], en[i], *args, y0, y1, d[i], var[i], ok[i], conf[i])
+
+    with Workers(threads) as workers:
+        workers.map(band, [(i, rows) for i in range(B) for rows in bands])
+    return tuple(outs)

@@ -1,0 +1,126 @@
+"""The compiled CPU path of the hard splat and of crack closing (egorefine.refine._predict_numba) against the
+torch path, which stays the reference (GPU, float64, autograd)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from egorefine.data import render_sequence
+from egorefine.refine import _predict_numba, close_cracks, predict_disparity
+
+needs_numba = pytest.mark.skipif(not _predict_numba.AVAILABLE, reason="numba not installed")
+
+
+@pytest.fixture(scope="module", params=["paper", "kitti"])
+def scene(request):
+    """A rendered frame and the motion of four frame steps from it (a keyframe predicted four frames ahead)."""
+    seq = render_sequence(num_frames=5, height=120, width=160, preset=request.param, seed=2)
+    motion = torch.eye(4)
+    for m in seq.motions[1:5]:
+        motion = m @ motion
+    g = torch.Generator().manual_seed(5)
+    var = 0.05 + 0.1 * torch.rand(1, 1, 120, 160, generator=g)
+    valid = torch.rand(1, 1, 120, 160, generator=g) > 0.02
+    return seq.disparity[:1], motion[None], seq.K[None], torch.tensor([seq.baseline]), var, valid
+
+
+def _both(monkeypatch, fn):
+    compiled = fn()
+    monkeypatch.setattr(_predict_numba, "AVAILABLE", False)
+    reference = fn()
+    monkeypatch.setattr(_predict_numba, "AVAILABLE", True)
+    return compiled, reference
+
+
+def _assert_close_predictions(a, b, share=1e-3):
+    # Same float32 formulas; torch's vectorised kernels fuse some multiply-adds, so values agree to rounding, and a
+    # rounding can tip a discrete decision (which source pixel a target falls in) at a handful of pixels.
+    assert (a.valid != b.valid).float().mean() <= share
+    both = a.valid & b.valid
+    diff = (a.disparity - b.disparity).abs()[both]
+    assert (diff > 1e-3).float().mean() <= share and diff.max() < 0.1
+    var_diff = (a.variance - b.variance).abs()[both]
+    assert (var_diff > 1e-4).float().mean() <= share
+    holes = ~a.valid & ~b.valid
+    assert (a.variance[holes] == b.variance[holes]).all() and (a.confidence[holes] == 0).all()
+    assert torch.isfinite(a.disparity).all() and torch.isfinite(a.variance).all()
+
+
+@needs_numba
+@pytest.mark.parametrize(
+    "kwargs",
+    [{}, {"fill_holes": False}, {"refine_iterations": 2}, {"surface_tolerance": 0.3, "process_noise": 0.05}],
+)
+def test_compiled_splat_equals_torch_path(scene, monkeypatch, kwargs):
+    d, motion, K, b, var, valid = scene
+    a, r = _both(monkeypatch, lambda: predict_disparity(d, motion, K, b, variance=var, valid=valid, **kwargs))
+    _assert_close_predictions(a, r)
+    assert a.valid.float().mean() > 0.7  # a real prediction (4 steps forward: magnified ground cracks), not empty
+
+
+@needs_numba
+def test_compiled_splat_without_variance(scene, monkeypatch):
+    d, motion, K, b, _, _ = scene
+    a, r = _both(monkeypatch, lambda: predict_disparity(d, motion, K, b, process_noise=0.02))
+    _assert_close_predictions(a, r)
+    assert (a.variance[a.valid] == 0.02).all()
+
+
+@needs_numba
+def test_compiled_splat_is_independent_of_threads_batch_and_workspace(scene):
+    d, motion, K, b, var, valid = scene
+    ref = predict_disparity(d, motion, K, b, variance=var, valid=valid)
+    torch.set_num_threads(3)  # more bands than rows per band: threads split the rows differently
+    try:
+        three = predict_disparity(d, motion, K, b, variance=var, valid=valid)
+    finally:
+        torch.set_num_threads(2)
+    # a second item of another size in between (the kept workspace is resized), then a batch of two
+    predict_disparity(d[..., :60, :90].contiguous(), motion, K, b)
+    d2 = torch.cat([d.flip(-1), d])
+    pair = predict_disparity(d2, motion.expand(2, 4, 4), K.expand(2, 3, 3), b.expand(2),
+                             variance=torch.cat([var, var]), valid=torch.cat([valid, valid]))
+    for x, y, z in zip(ref, three, pair, strict=True):
+        assert torch.equal(x, y) and torch.equal(x, z[1:])
+
+
+@needs_numba
+def test_empty_source_gives_flagged_holes_without_nan():
+    d = torch.full((1, 1, 20, 30), -1.0)  # nothing valid
+    K = torch.tensor([[[40.0, 0, 15], [0, 40.0, 10], [0, 0, 1]]])
+    pred = predict_disparity(d, torch.eye(4)[None], K, torch.tensor([0.1]))
+    assert not pred.valid.any() and (pred.disparity == 0).all() and (pred.confidence == 0).all()
+    assert (pred.variance == 100.0).all()
+
+
+def test_torch_path_where_the_compiled_one_does_not_apply(scene, monkeypatch):
+    d, motion, K, b, var, valid = scene
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the compiled path ran")
+
+    monkeypatch.setattr(_predict_numba, "hard_splat", refuse)
+    monkeypatch.setattr(_predict_numba, "AVAILABLE", True)
+    predict_disparity(d.double(), motion, K, b)  # float64
+    predict_disparity(d.clone().requires_grad_(True), motion, K, b)  # autograd
+    predict_disparity(d, motion, K, b, mode="soft")  # soft splatting
+    predict_disparity(d, motion, K, b, refine_iterations=0)  # the coverage splat
+    monkeypatch.setattr(_predict_numba, "AVAILABLE", False)
+    predict_disparity(d, motion, K, b)  # numba missing
+    monkeypatch.setattr(_predict_numba, "AVAILABLE", True)
+    with pytest.raises(AssertionError, match="compiled path"):
+        predict_disparity(d, motion, K, b)
+
+
+@needs_numba
+def test_compiled_crack_closing_equals_torch_path(scene, monkeypatch):
+    d, motion, K, b, var, valid = scene
+    pred = predict_disparity(d, motion, K, b, variance=var, valid=valid)
+    a, r = _both(monkeypatch, lambda: close_cracks(pred, d, var, valid, motion, K, b, process_noise=0.02))
+    assert torch.equal(a.valid, r.valid)
+    assert (a.valid & ~pred.valid).any()  # it closed some
+    torch.testing.assert_close(a.disparity, r.disparity, atol=1e-4, rtol=0)
+    torch.testing.assert_close(a.variance, r.variance, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(a.confidence, r.confidence, atol=1e-5, rtol=0)
+    assert torch.equal(a.hole, pred.hole)
