@@ -7,11 +7,15 @@ writing full-size maps: about 14 ms per 640x480 frame on two threads, the larges
 refiner's loop. Every target pixel's work depends only on its own values and a few gathered
 ones, so here it is three loops:
 
-1. (one thread per batch item) move every source point (PAPER.md eq. 1 in inverse-depth form),
-   write the padded source maps and scatter its z-buffer key;
+1. (row bands on threads) move every source point (PAPER.md eq. 1 in inverse-depth form), write the
+   padded source maps and each point's z-buffer cell and key; then (one thread) the scatter;
 2. (row bands on threads) per target pixel: the 3x3 z-buffer maximum, the candidate, the check in
    frame ``t-1``, the start value and the inverse-warp refinement steps;
 3. (row bands on threads) the background hole fill and the outputs.
+
+Step 2 works a row at a time and splits each stage into loops that only compute (LLVM turns them
+into SIMD code) and loops that only gather (which would keep a loop scalar): about 5x faster than
+one loop per pixel. The whole splat takes about 3 ms at 640x480 on two threads.
 
 They repeat the torch path's float32 formulas in the same order (see :mod:`egorefine.refine.predict`
 for what each step means), so the decisions agree with it; values may differ in the last bits
@@ -108,9 +112,16 @@ if AVAILABLE:
     @_jit
     def _targets(zbuf, zval, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1,
                  est_out, var_out, landed_out):
-        """Steps 2 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big: none)."""
+        """Step 2 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big: none).
+
+        A row at a time, each stage split into loops without gathers (compiled to SIMD code) and loops that only
+        gather: with the gathers inside, the loop stays scalar and is about 5x slower.
+        """
         H, W = est_out.shape
+        wp = key_src.shape[1]
+        src_flat, new_flat, var_flat = key_src.reshape(-1), key_new.reshape(-1), var_p.reshape(-1)
         lowest = _BIG
+        xs = np.arange(W).astype(np.float32)
         # the nearest surface within one pixel: 3x3 maximum of the keys, separable (rows, then columns); the float
         # view of the int32 maximum is its d'
         rows_max = np.empty((y1 - y0 + 2, W), np.int32)
@@ -121,81 +132,93 @@ if AVAILABLE:
                 rows_max[r, x] = max(max(zbuf[j, i - 1], zbuf[j, i]), zbuf[j, i + 1])
         near_row = np.empty(W, np.int32)
         near_val = near_row.view(np.float32)
-        # a row at a time, one pass per step: the pixels of a pass are independent, so the CPU overlaps their long
-        # dependency chains (division, gather, compare, interpolation); a pixel's steps in one loop run 3x slower
-        est_r = np.empty(W, np.float32)
-        wp = key_src.shape[1]
-        uwp = np.uint64(wp)
-        src_flat = key_src.reshape(-1)
-        landed_r = np.empty(W, np.bool_)
-        fallback_r = np.empty(W, np.bool_)
+        est_r, land_r, fall_r = np.empty(W, np.float32), np.empty(W, np.bool_), np.empty(W, np.bool_)
+        sx_r, sy_r, ex_r, hz_r = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(
+            W, np.float32)
+        fx_r, fy_r = np.empty(W, np.float32), np.empty(W, np.float32)
+        at = np.empty(W, np.int64)
+        g = np.empty((4, W), np.float32)
         for y in range(y0, y1):
             yf = _F(y)
             r = y - y0
+            # row-constant parts of the back-projection G (x, y, 1), added in the torch path's order
+            r0, r1, r2 = G[0, 1] * yf, G[1, 1] * yf, G[2, 1] * yf
+            # -- the candidate (nearest surface, or what landed on the pixel on the same surface), sent back at its
+            # depth into frame t-1: the source pixel it falls in
             for x in range(W):
-                near_row[x] = max(max(rows_max[r, x], rows_max[r + 1, x]), rows_max[r + 2, x])
-            for x in range(W):
-                xf = _F(x)
-                near = near_row[x]
+                xf = xs[x]
+                near = max(max(rows_max[r, x], rows_max[r + 1, x]), rows_max[r + 2, x])
+                near_row[x] = near
+                own = zbuf[y + _PAD, x + _PAD]
                 near_v = near_val[x] if near >= 0 else _F(0.0)
-                own_v = zval[y + _PAD, x + _PAD] if zbuf[y + _PAD, x + _PAD] >= 0 else _F(0.0)
+                own_v = zval[y + _PAD, x + _PAD] if own >= 0 else _F(0.0)
                 cand = own_v if near_v - own_v < tol else near_v
-                # the check: the target sent back at the candidate's depth, compared in frame t-1
-                hz = ((G[2, 0] * xf + G[2, 2]) + G[2, 1] * yf) + cand * e[2]
+                hz = ((G[2, 0] * xf + G[2, 2]) + r2) + cand * e[2]
                 inv_h = _F(1.0) / max(hz, _MIN)
-                sx = (((G[0, 0] * xf + G[0, 2]) + G[0, 1] * yf) + cand * e[0]) * inv_h
-                sy = (((G[1, 0] * xf + G[1, 2]) + G[1, 1] * yf) + cand * e[1]) * inv_h
-                px = np.int64(np.rint(min(max(sx, _F(-1.0)), _F(W)))) + _PAD
-                py = np.int64(np.rint(min(max(sy, _F(-1.0)), _F(H)))) + _PAD
-                landed = (abs(key_src[py, px] - inv_h * cand) < tol) & (hz > _MIN) & (near >= 0)
-                est = key_new[py, px]
-                fallback_r[x] = (est >= 0) & (near >= 0) & ~landed
-                landed_r[x] = landed
+                sx = (((G[0, 0] * xf + G[0, 2]) + r0) + cand * e[0]) * inv_h
+                sy = (((G[1, 0] * xf + G[1, 2]) + r1) + cand * e[1]) * inv_h
+                hz_r[x] = hz
+                ex_r[x] = inv_h * cand
+                px = np.rint(min(max(sx, _F(-1.0)), _F(W)))
+                py = np.rint(min(max(sy, _F(-1.0)), _F(H)))
+                at[x] = (np.int64(py) + _PAD) * wp + np.int64(px) + _PAD
+            for x in range(W):
+                c = at[x]
+                g[0, x] = src_flat[c]
+                g[1, x] = new_flat[c]
+            if has_var:
+                for x in range(W):
+                    var_out[y, x] = var_flat[at[x]]
+            # -- accepted when that pixel's disparity is the one the candidate implies there; its d' is the start
+            for x in range(W):
+                near = near_row[x]
+                landed = (abs(g[0, x] - ex_r[x]) < tol) & (hz_r[x] > _MIN) & (near >= 0)
+                est = g[1, x]
+                fall_r[x] = (est >= 0) & (near >= 0) & ~landed
+                land_r[x] = landed
                 est_r[x] = max(est, _F(0.0))
-                if has_var:
-                    var_out[y, x] = var_p[py, px]
-            # inverse-warp refinement; the first step decides the fallbacks and re-checks every target
+            # -- inverse-warp refinement; the first step decides the fallbacks and re-checks every target
             for step in range(iterations):
                 for x in range(W):
-                    xf = _F(x)
+                    xf = xs[x]
                     est = est_r[x]
-                    hz = ((G[2, 0] * xf + G[2, 2]) + G[2, 1] * yf) + est * e[2]
-                    hz_ok = hz > _MIN
+                    hz = ((G[2, 0] * xf + G[2, 2]) + r2) + est * e[2]
                     inv_h = _F(1.0) / max(hz, _MIN)
-                    sx = (((G[0, 0] * xf + G[0, 2]) + G[0, 1] * yf) + est * e[0]) * inv_h
-                    sy = (((G[1, 0] * xf + G[1, 2]) + G[1, 1] * yf) + est * e[1]) * inv_h
-                    expect = est * inv_h
-                    qz = (A[2, 2] + sx * A[2, 0]) + sy * A[2, 1]
+                    sx = (((G[0, 0] * xf + G[0, 2]) + r0) + est * e[0]) * inv_h
+                    sy = (((G[1, 0] * xf + G[1, 2]) + r1) + est * e[1]) * inv_h
+                    hz_r[x], sx_r[x], sy_r[x], ex_r[x] = hz, sx, sy, est * inv_h
                     fx0 = np.floor(min(max(sx, _F(-_PAD)), _F(W + 1)))
                     fy0 = np.floor(min(max(sy, _F(-_PAD)), _F(H + 1)))
-                    fx = sx - fx0
-                    fy = sy - fy0
-                    # (unsigned flat indices: no negative-index handling per access)
-                    c0 = np.uint64((np.int64(fy0) + _PAD) * wp + np.int64(fx0) + _PAD)
-                    g0, g1 = src_flat[c0], src_flat[c0 + np.uint64(1)]
-                    g2, g3 = src_flat[c0 + uwp], src_flat[c0 + uwp + np.uint64(1)]
+                    fx_r[x], fy_r[x] = sx - fx0, sy - fy0
+                    at[x] = (np.int64(fy0) + _PAD) * wp + np.int64(fx0) + _PAD
+                for x in range(W):  # the four source neighbours
+                    c = at[x]
+                    g[0, x], g[1, x] = src_flat[c], src_flat[c + 1]
+                    g[2, x], g[3, x] = src_flat[c + wp], src_flat[c + wp + 1]
+                for x in range(W):
+                    est, expect, fx, fy = est_r[x], ex_r[x], fx_r[x], fy_r[x]
+                    g0, g1, g2, g3 = g[0, x], g[1, x], g[2, x], g[3, x]
                     s0 = abs(g0 - expect) < tol
                     s1 = abs(g1 - expect) < tol
                     s2 = abs(g2 - expect) < tol
                     s3 = abs(g3 - expect) < tol
                     d_src = _lerp(_lerp(g0 if s0 else expect, g1 if s1 else expect, fx),
                                   _lerp(g2 if s2 else expect, g3 if s3 else expect, fx), fy)
-                    qz = qz + d_src * a[2]
+                    qz = ((A[2, 2] + sx_r[x] * A[2, 0]) + sy_r[x] * A[2, 1]) + d_src * a[2]
                     new = d_src / max(qz, _MIN)
-                    landed = landed_r[x]
+                    hz_ok = hz_r[x] > _MIN
+                    landed = land_r[x]
                     if step == 0:
                         # the nearest neighbour must be on the start's surface, and the step small
                         right, down = np.rint(fx) > 0, np.rint(fy) > 0
                         nearest_same = (s3 if right else s2) if down else (s1 if right else s0)
-                        landed = (landed | fallback_r[x]) & nearest_same & (abs(new - est) <= tol) & hz_ok
-                        landed_r[x] = landed
-                    if hz_ok & (qz > _MIN) & landed:
-                        est_r[x] = new
+                        landed = (landed | fall_r[x]) & nearest_same & (abs(new - est) <= tol) & hz_ok
+                        land_r[x] = landed
+                    est_r[x] = new if hz_ok & (qz > _MIN) & landed else est
             for x in range(W):
                 est_out[y, x] = est_r[x]
-                landed_out[y, x] = landed_r[x]
-                if landed_r[x] and est_r[x] < lowest:
-                    lowest = est_r[x]
+                landed_out[y, x] = land_r[x]
+                lowest = min(lowest, est_r[x] if land_r[x] else _BIG)
         return lowest
 
     @_jit

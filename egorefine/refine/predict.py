@@ -51,7 +51,7 @@ disparity only; the variance stays the carried one.
 
 Speed: for float32 CPU maps that need no gradient, hard mode with refinement runs compiled
 (:mod:`egorefine.refine._predict_numba`, numba: the same formulas in three loops, decisions equal to
-this path's, values to rounding; about 0.7x this path's time at 640x480 on two threads). The torch
+this path's, values to rounding; about 0.35x this path's time at 640x480 on two threads). The torch
 path below is the reference for GPU tensors, float64 and autograd. It is written in pixel-homogeneous
 coordinates (one affine map per component over the grid), out-of-image points land in the margin of
 a padded flat layout instead of being masked, bilinear neighbours share one index through shifted
