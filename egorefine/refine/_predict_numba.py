@@ -111,8 +111,10 @@ if AVAILABLE:
 
     @_jit
     def _targets(zbuf, zval, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1,
-                 est_out, var_out, landed_out):
-        """Step 2 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big: none).
+                 est_out, var_out, landed_out, fill_holes, process_noise, hole_variance, later,
+                 disparity, variance, confidence):
+        """Steps 2 and 3 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big:
+        none). A row without a landed pixel is filled later, from the whole image (marked in ``later``).
 
         A row at a time, each stage split into loops without gathers (compiled to SIMD code) and loops that only
         gather: with the gathers inside, the loop stays scalar and is about 5x slower.
@@ -215,42 +217,52 @@ if AVAILABLE:
                         landed = (landed | fall_r[x]) & nearest_same & (abs(new - est) <= tol) & hz_ok
                         land_r[x] = landed
                     est_r[x] = new if hz_ok & (qz > _MIN) & landed else est
+            row_lowest = _BIG
             for x in range(W):
                 est_out[y, x] = est_r[x]
                 landed_out[y, x] = land_r[x]
-                lowest = min(lowest, est_r[x] if land_r[x] else _BIG)
+                row_lowest = min(row_lowest, est_r[x] if land_r[x] else _BIG)
+            lowest = min(lowest, row_lowest)
+            later[y] = fill_holes and row_lowest >= _BIG
+            if not later[y]:
+                _fill_row(y, est_out, var_out, landed_out, has_var, fill_holes, _BIG, process_noise, hole_variance,
+                          disparity, variance, confidence)
         return lowest
 
-    @_jit
-    def _fill(est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance, y0, y1,
-              disparity, variance, confidence):
-        """Step 3 for rows ``y0:y1``: the background hole fill (predict.fill_holes_background) and the outputs."""
-        H, W = est.shape
-        for y in range(y0, y1):
-            if fill_holes:
-                # nearest landed value on the left (+big: none), then the minimum with the one on the right
-                last = _BIG
-                for x in range(W):
-                    if landed[y, x]:
-                        last = est[y, x]
-                    disparity[y, x] = last
-                row_fill = image_fill if last >= _BIG else _BIG  # a row without a landed pixel
-                last = _BIG
-                for x in range(W - 1, -1, -1):
-                    if landed[y, x]:
-                        last = est[y, x]
-                    disparity[y, x] = min(min(disparity[y, x], last), row_fill)
-            else:
-                for x in range(W):
-                    disparity[y, x] = est[y, x] if landed[y, x] else _F(0.0)
+    @_jit(inline="always")
+    def _fill_row(y, est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance,
+                  disparity, variance, confidence):
+        """Step 3 for row ``y``: the background hole fill (predict.fill_holes_background) and the outputs."""
+        W = est.shape[1]
+        if fill_holes:
+            # nearest landed value on the left (+big: none), then the minimum with the one on the right
+            last = _BIG
             for x in range(W):
                 if landed[y, x]:
-                    v = (est_var[y, x] + process_noise) if has_var else process_noise
-                    variance[y, x] = v
-                    confidence[y, x] = _F(1.0) / (_F(1.0) + v)
-                else:
-                    variance[y, x] = hole_variance
-                    confidence[y, x] = _F(0.0)
+                    last = est[y, x]
+                disparity[y, x] = last
+            row_fill = image_fill if last >= _BIG else _BIG  # a row without a landed pixel
+            last = _BIG
+            for x in range(W - 1, -1, -1):
+                if landed[y, x]:
+                    last = est[y, x]
+                disparity[y, x] = min(min(disparity[y, x], last), row_fill)
+        else:
+            for x in range(W):
+                disparity[y, x] = est[y, x] if landed[y, x] else _F(0.0)
+        for x in range(W):
+            v = (est_var[y, x] + process_noise) if has_var else process_noise
+            variance[y, x] = v if landed[y, x] else hole_variance
+            confidence[y, x] = _F(1.0) / (_F(1.0) + v) if landed[y, x] else _F(0.0)
+
+    @_jit
+    def _fill(est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance, rows,
+              disparity, variance, confidence):
+        """Step 3 for the marked ``rows`` (those without a landed pixel, which take the image's fill value)."""
+        for y in range(est.shape[0]):
+            if rows[y]:
+                _fill_row(y, est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance,
+                          disparity, variance, confidence)
 
     @_jit
     def _close_cracks(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y0, y1,
@@ -349,6 +361,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, src_ok: torch.Tensor, 
     confidence = np.empty((B, H, W), np.float32)
     landed = np.empty((B, H, W), np.bool_)
     bands = _bands(H, threads)
+    noise, hole = _F(process_noise), _F(hole_variance)
 
     def item(i: int, run) -> None:
         key_src, key_new, var_p, zbuf, at, keys = _workspace(H, W, var is not None)
@@ -356,15 +369,18 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, src_ok: torch.Tensor, 
                                        key_src, key_new, var_p, at, keys), bands)
         zbuf.fill(-1)
         _scatter(at, keys, zbuf, var_p, var is not None)
-        est = np.empty((H, W), np.float32)
-        est_var = np.empty((H, W), np.float32) if var is not None else est
+        # the scatter is done: its cells and keys buffers hold the estimates now (no fresh pages to fault in)
+        est = at.view(np.float32)
+        est_var = keys.view(np.float32) if var is not None else est
+        later = np.empty(H, np.bool_)
+        outs = (disparity[i], variance[i], confidence[i])
         lows = run(lambda band: _targets(zbuf, zbuf.view(np.float32), key_src, key_new, var_p, var is not None,
                                          An[i], an[i], Gn[i], en[i], tol, refine_iterations, band[0], band[1],
-                                         est, est_var, landed[i]), bands)
-        low = min(lows)
-        image_fill = _F(0.0) if low >= _BIG else _F(low)
-        run(lambda band: _fill(est, est_var, landed[i], var is not None, fill_holes, image_fill, _F(process_noise),
-                               _F(hole_variance), band[0], band[1], disparity[i], variance[i], confidence[i]), bands)
+                                         est, est_var, landed[i], fill_holes, noise, hole, later, *outs), bands)
+        if later.any():  # rows without a landed pixel: the smallest landed value of the image (0 if none)
+            low = min(lows)
+            image_fill = _F(0.0) if low >= _BIG else _F(low)
+            _fill(est, est_var, landed[i], var is not None, fill_holes, image_fill, noise, hole, later, *outs)
 
     with Workers(threads) as workers:
         for i in range(B):
