@@ -7,7 +7,13 @@ import torch
 
 from egorefine.core import ShapeError, ValueRangeError
 from egorefine.geometry import make_intrinsics
-from egorefine.refine.correct import QUANTISATION_VARIANCE, CorrectDisparity, Correction, correct_disparity
+from egorefine.refine.correct import (
+    QUANTISATION_VARIANCE,
+    CorrectDisparity,
+    Correction,
+    correct_disparity,
+    edge_variance,
+)
 from egorefine.refine.predict import predict_disparity
 
 
@@ -142,6 +148,80 @@ def test_kalman_reduces_error_on_a_static_scene():
     assert (kalman[1:] <= kalman[:-1] * 1.05).all()  # decreases (up to noise) as measurements accumulate
     assert kalman[-1] < 0.1  # sigma / sqrt(16) = 0.075 for an ideal average; measured 0.077
     assert kalman[-1] < 0.7 * paper[-1]  # measured 0.077 vs 0.155: the paper rule leaves errors below its gate
+
+
+# ----------------------------------------------------------------------------- unverified predictions, depth edges
+def test_unverified_predictions_are_valid_only_while_their_variance_allows():
+    e, s = _t([[2.0, 2.0, 2.0, 2.0]]), _t([[3.0, 3.0, 3.0, 3.0]])
+    s_ok = _t([[0, 0, 1, 0]]).bool()  # stereo rejected pixels 0, 1 and 3
+    e_ok = _t([[1, 1, 1, 0]]).bool()
+    P = _t([[0.05, 0.2, 0.2, 0.01]])
+    kw = dict(predicted_variance=P, predicted_valid=e_ok, measured_variance=_t([[0.1] * 4]))
+    cor = correct_disparity(e, s, s_ok, fusion="kalman", max_unverified_variance=0.0625, **kw)
+    # 0: unverified, sigma 0.22 px: kept; 1: unverified, sigma 0.45 px: not valid; 2: measured: valid whatever P;
+    # 3: neither map: not valid
+    assert torch.equal(cor.valid, _t([[1, 0, 1, 0]]).bool())
+    free = correct_disparity(e, s, s_ok, fusion="kalman", **kw)
+    assert torch.equal(free.valid, _t([[1, 1, 1, 0]]).bool())
+    for x, y in zip(cor[:2] + cor[3:], free[:2] + free[3:], strict=True):
+        assert torch.equal(x, y)  # only validity changes: values, variances and counts are carried
+    # the paper's rule is the paper's: the limit does not apply there
+    paper = correct_disparity(e, s, s_ok, fusion="paper", max_unverified_variance=0.0625, **kw)
+    for x, y in zip(paper, correct_disparity(e, s, s_ok, fusion="paper", **kw), strict=True):
+        assert torch.equal(x, y)
+    module = CorrectDisparity(fusion="kalman", max_unverified_variance=0.0625)(e, s, s_ok, **kw)
+    for x, y in zip(module, cor, strict=True):
+        assert torch.equal(x, y)
+    with pytest.raises(ValueRangeError, match="max_unverified_variance"):
+        correct_disparity(e, s, s_ok, fusion="kalman", max_unverified_variance=0.0)
+
+
+def test_edge_variance_on_a_slanted_plane_with_a_box():
+    # truth: a plane of slope 0.02 px/px along x, a box 3 px nearer on rows 3-6, columns 4-7; column 0 invalid
+    d = (4.0 + 0.02 * torch.arange(12, dtype=torch.float64)).expand(10, 12).clone()
+    d[3:7, 4:8] += 3.0
+    valid = torch.ones_like(d, dtype=torch.bool)
+    valid[:, 0] = False
+    var = edge_variance(d[None, None], valid[None, None])[0, 0]
+    touches = torch.zeros_like(valid)  # 3x3 window holds box and plane
+    touches[2:8, 3:9] = True
+    touches[4:6, 5:7] = False
+    assert (var[touches] >= (2.96 / 2) ** 2 - 1e-9).all()  # box 3 px above the plane, minus 2 px of slope
+    plane = valid & ~touches
+    plane[3:7, 4:8] = False
+    # on the plane: (slope * 2 px / 2)^2 = 1e-4 * 4; at columns 1 and 11 the window holds 2 valid columns: 1e-4
+    expected = torch.full_like(var, 4e-4)
+    expected[:, 1] = expected[:, 11] = 1e-4
+    assert torch.allclose(var[plane], expected[plane], atol=1e-12)
+    assert torch.allclose(var[4:6, 5:7], torch.full((2, 2), 4e-4, dtype=torch.float64), atol=1e-12)  # box inside
+    assert (var[:, 0] == 0).all()  # invalid pixels: 0
+    wide = edge_variance(d[None, None], valid[None, None], kernel_size=5)[0, 0]
+    assert wide[1, 6] >= 2.19 and var[1, 6] == pytest.approx(4e-4)  # two rows above the box: only the 5x5 sees it
+    with pytest.raises(ValueRangeError, match="kernel_size"):
+        edge_variance(d[None, None], kernel_size=4)
+    with pytest.raises(ShapeError, match="valid"):
+        edge_variance(d[None, None], valid)
+
+
+def test_edge_variance_lets_the_measurement_win_at_edges():
+    # a prediction with a box edge one pixel off (columns 3 hold the box's 6 px instead of the plane's 3 px);
+    # stereo measures the truth. With the edge term the Kalman update takes the measurement at the edge.
+    truth = torch.full((1, 1, 4, 8), 3.0, dtype=torch.float64)
+    truth[..., 4:] = 6.0
+    pred = truth.clone()
+    pred[..., 3] = 6.0
+    P = torch.full_like(pred, 0.05)
+    R = torch.full_like(pred, 0.02)
+    kw = dict(fusion="kalman", measured_variance=R, kalman_gate=1e6)  # gate off: the fusion alone decides
+    plain = correct_disparity(pred, truth, None, predicted_variance=P, **kw)
+    edged = correct_disparity(pred, truth, None, predicted_variance=P + edge_variance(pred), **kw)
+    err_plain = (plain.disparity - truth).abs()[..., 3]
+    err_edged = (edged.disparity - truth).abs()[..., 3]
+    assert (err_plain > 0.8).all()  # G = 0.05 / 0.07: 3 * 0.29 = 0.86 px off, a bad-0.5 pixel
+    assert (err_edged < 0.03).all()  # P = 0.05 + 2.25: G = 0.991, 0.026 px off
+    interior = torch.ones(8, dtype=torch.bool)
+    interior[2:6] = False  # away from the edge the update is the same
+    assert torch.equal(plain.disparity[..., interior], edged.disparity[..., interior])
 
 
 # ----------------------------------------------------------------------------- checks, batch, module, gradients
