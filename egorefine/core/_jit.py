@@ -7,6 +7,7 @@ and callers take their torch path (which is also the reference for GPU tensors a
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -41,27 +42,23 @@ class Workers:
     """A pool of ``threads`` Python threads for nogil kernels (none for one thread); ``map`` is a barrier.
 
     Threads rather than numba's ``parallel=True``, whose threading layer can clash with torch's OpenMP. The pools
-    are kept per thread count for the process's lifetime: starting threads on every call cost ~0.3 ms of a ~3 ms
-    splat.
+    are kept per thread count for the process's lifetime (starting threads on every call cost ~0.3 ms of a ~3 ms
+    splat), and per process: a child forked from this one (a ``DataLoader`` worker) has none of the parent's
+    threads, so it starts its own pool instead of waiting on one whose threads do not exist there.
     """
 
-    _pools: dict[int, ThreadPoolExecutor] = {}
+    _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
     _lock = threading.Lock()
 
     def __init__(self, threads: int) -> None:
         self.pool = None
         if threads > 1:
+            key = (os.getpid(), threads)
             with Workers._lock:
-                self.pool = Workers._pools.get(threads)
+                self.pool = Workers._pools.get(key)
                 if self.pool is None:
-                    self.pool = Workers._pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="egorefine")
+                    self.pool = Workers._pools[key] = ThreadPoolExecutor(threads, thread_name_prefix="egorefine")
 
     def map(self, fn, items) -> list:
         """``[fn(item) for item in items]``, run on the pool; returns when all are done."""
         return list(self.pool.map(fn, items) if self.pool is not None else map(fn, items))
-
-    def __enter__(self) -> Workers:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        pass

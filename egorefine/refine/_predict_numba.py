@@ -382,9 +382,9 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, src_ok: torch.Tensor, 
             image_fill = _F(0.0) if low >= _BIG else _F(low)
             _fill(est, est_var, landed[i], var is not None, fill_holes, image_fill, noise, hole, later, *outs)
 
-    with Workers(threads) as workers:
-        for i in range(B):
-            item(i, workers.map)
+    workers = Workers(threads)
+    for i in range(B):
+        item(i, workers.map)
     as_t = torch.from_numpy
     return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed)
 
@@ -415,6 +415,5 @@ def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.T
         i, (y0, y1) = job
         _close_cracks(kd[i], kv[i], kok[i], Gn[i], en[i], *args, y0, y1, d[i], var[i], ok[i], conf[i])
 
-    with Workers(threads) as workers:
-        workers.map(band, [(i, rows) for i in range(B) for rows in bands])
+    Workers(threads).map(band, [(i, rows) for i in range(B) for rows in bands])
     return tuple(outs)

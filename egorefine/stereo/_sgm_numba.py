@@ -521,8 +521,8 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
             run(lambda band: _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[1], opts["lr_threshold"],
                                             band[0], band[1]), row_bands)
 
-    with Workers(threads) as workers:
-        for i in range(b):
-            item(i, workers.map)
+    workers = Workers(threads)
+    for i in range(b):
+        item(i, workers.map)
     as_t = lambda a: torch.from_numpy(a).unsqueeze(1)  # noqa: E731
     return as_t(disparity), as_t(valid), as_t(variance), torch.stack(volumes) if return_volume else None
