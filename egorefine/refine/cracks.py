@@ -80,11 +80,9 @@ def close_cracks(
     check_shape(motion, ["B", "4", "4"], "motion", dims)
     B, _, H, W = key_disparity.shape
     maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
-    if bool(prediction.valid.all()):
-        return prediction
-    if (_predict_numba.AVAILABLE and key_disparity.device.type == "cpu"
+    if (_predict_numba.AVAILABLE and key_disparity.device.type == "cpu" and maps[2].dtype == torch.bool
             and all(t.dtype == torch.float32 for t in (key_disparity, key_variance, *maps[:2], maps[3]))):
-        # the same look-ups compiled (egorefine.refine._predict_numba)
+        # the same look-ups compiled (egorefine.refine._predict_numba); None: no hole
         _, _, G, e = _pixel_motion(motion, K, baseline)
         valid = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
         out = _predict_numba.close_cracks(
@@ -92,8 +90,12 @@ def close_cracks(
             valid[:, 0], G.detach().to(torch.float32), e.detach().to(torch.float32), iterations, tolerance,
             surface_tolerance, process_noise,
         )
+        if out is None:
+            return prediction
         disparity, variance, valid, confidence = (t[:, None] for t in out)
         return prediction._replace(disparity=disparity, variance=variance, valid=valid, confidence=confidence)
+    if bool(prediction.valid.all()):
+        return prediction
     with torch.no_grad():
         idx = (~prediction.valid).view(-1).nonzero().squeeze(1)  # flat indices of the hole pixels
         if idx.numel() == 0:

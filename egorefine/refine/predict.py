@@ -312,7 +312,6 @@ def predict_disparity(
     """
     dims = check_shape(disparity, ["B", "1", "H", "W"], "disparity")
     check_float(disparity, "disparity")
-    check_finite(disparity, "disparity")
     check_shape(motion, ["B", "4", "4"], "motion", dims)
     check_shape(K, ["B", "3", "3"], "K", dims)
     check_shape(baseline, ["B"], "baseline", dims)
@@ -341,6 +340,8 @@ def predict_disparity(
         torch.is_grad_enabled()
         and any(t is not None and t.requires_grad for t in (disparity, motion, K, baseline, variance))
     )
+    if not (mode == "hard" and refine_iterations > 0 and _compiled(fast, disparity)):
+        check_finite(disparity, "disparity")  # (the compiled path tests it inside its kernels)
     with torch.set_grad_enabled(not fast):
         return _predict(
             disparity,
@@ -382,20 +383,23 @@ def _predict(
     motion, K, baseline = motion.to(dtype), K.to(dtype), baseline.to(dtype)
     d = disparity[:, 0]
     var = None if variance is None else variance[:, 0].to(dtype)
-    src_ok = d >= 0
-    if valid is not None:
-        src_ok = src_ok & valid[:, 0]
-
     # Pixel-homogeneous form (see _pixel_motion); the grid enters as a column and a row vector.
     A, a, G, e = _pixel_motion(motion, K, baseline)
     if mode == "hard" and refine_iterations > 0 and _compiled(fast, d):
         # the same steps compiled (egorefine.refine._predict_numba): float32 CPU inference
-        est, out_var, confidence, landed = _predict_numba.hard_splat(
-            d.contiguous(), None if var is None else var.contiguous(), src_ok.contiguous(), A, a, G, e,
-            surface_tolerance, refine_iterations, fill_holes, process_noise, hole_variance,
+        out = _predict_numba.hard_splat(
+            d.contiguous(), None if var is None else var.contiguous(),
+            None if valid is None else valid[:, 0].contiguous(), A, a, G, e, surface_tolerance, refine_iterations,
+            fill_holes, process_noise, hole_variance,
         )
+        if out is None:  # NaN or Inf in the disparity
+            check_finite(disparity, "disparity")
+        est, out_var, confidence, landed = out
         hole4 = ~landed[:, None]
         return Prediction(est[:, None], out_var[:, None], hole4, ~hole4, confidence[:, None])
+    src_ok = d >= 0
+    if valid is not None:
+        src_ok = src_ok & valid[:, 0]
     xs = torch.arange(W, device=device, dtype=dtype).view(1, 1, W)
     ys = torch.arange(H, device=device, dtype=dtype).view(1, H, 1)
     layout = _Padded(B, H, W, device)

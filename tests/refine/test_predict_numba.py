@@ -124,3 +124,16 @@ def test_compiled_crack_closing_equals_torch_path(scene, monkeypatch):
     torch.testing.assert_close(a.variance, r.variance, atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(a.confidence, r.confidence, atol=1e-5, rtol=0)
     assert torch.equal(a.hole, pred.hole)
+
+
+@needs_numba
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_compiled_splat_rejects_non_finite_disparity(scene, bad):
+    # The compiled path tests finiteness inside its kernels (no torch pass over the map): the same typed error.
+    from egorefine.core import ValueRangeError
+
+    d, motion, K, b, var, valid = scene
+    d2 = torch.cat([d, d.clone()])
+    d2[1, 0, 60, 80] = bad  # one pixel of the second item
+    with pytest.raises(ValueRangeError, match="disparity"):
+        predict_disparity(d2, motion.expand(2, 4, 4), K.expand(2, 3, 3), b.expand(2))
