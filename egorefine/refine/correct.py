@@ -39,6 +39,7 @@ from torch import nn
 
 from ..core import check_choice, check_float, check_same_device, check_shape
 from ..core.errors import ValueRangeError
+from . import _predict_numba
 
 __all__ = ["Correction", "correct_disparity", "CorrectDisparity", "edge_variance", "QUANTISATION_VARIANCE"]
 
@@ -111,6 +112,11 @@ def edge_variance(disparity: torch.Tensor, valid: torch.Tensor | None = None, ke
         if valid is None:
             valid = torch.ones_like(disparity, dtype=torch.bool)
         valid = _as_bool(valid, disparity)
+        if _predict_numba.AVAILABLE and disparity.dtype == torch.float32 and disparity.device.type == "cpu":
+            # the same maxima and minima compiled (one pass instead of ~12 memory-bound torch ops)
+            return _predict_numba.edge_variance(
+                disparity.detach()[:, 0].contiguous(), valid[:, 0].contiguous(), kernel_size // 2
+            )[:, None]
         big = torch.finfo(disparity.dtype).max / 4
         hi = _window_max(disparity.masked_fill(~valid, -big), kernel_size // 2)
         lo = _window_max((-disparity).masked_fill(~valid, -big), kernel_size // 2)

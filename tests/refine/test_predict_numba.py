@@ -137,3 +137,16 @@ def test_compiled_splat_rejects_non_finite_disparity(scene, bad):
     d2[1, 0, 60, 80] = bad  # one pixel of the second item
     with pytest.raises(ValueRangeError, match="disparity"):
         predict_disparity(d2, motion.expand(2, 4, 4), K.expand(2, 3, 3), b.expand(2))
+
+
+@needs_numba
+@pytest.mark.parametrize("kernel_size", [1, 3, 5])
+def test_compiled_edge_variance_equals_torch_path(scene, monkeypatch, kernel_size):
+    # Maxima and minima of the same float32 values: bit for bit, borders (the window clipped) and invalid pixels too.
+    from egorefine.refine.correct import edge_variance
+
+    d, *_, valid = scene
+    d2, v2 = torch.cat([d, d.flip(-1)]), torch.cat([valid, ~valid])
+    a, r = _both(monkeypatch, lambda: edge_variance(d2, v2, kernel_size))
+    assert torch.equal(a, r)
+    assert (a[~v2] == 0).all() and (a.amax() > 0 if kernel_size > 1 else a.amax() == 0)
