@@ -67,8 +67,9 @@ class Correction(NamedTuple):
 
 def _window_max(x: torch.Tensor, radius: int) -> torch.Tensor:
     """Maximum over the ``(2 radius + 1)^2`` window around each pixel of ``x`` ``(B, 1, H, W)`` (border: the part
-    of the window inside the image). Shifted maxima along each axis, ``radius`` times: on CPU a 3x3
-    ``max_pool2d`` of a one-channel 1242x375 map costs ~10 ms, these eight ops ~0.3 ms."""
+    of the window inside the image). Shifted maxima along each axis, ``radius`` times (on CPU a 3x3
+    ``max_pool2d`` of a one-channel 1242x375 map costs ~10 ms). The torch path of :func:`edge_variance` (GPU,
+    float64); float32 CPU maps take a compiled pass instead (this one is memory-bound: ~3 ms at 1242x375)."""
     out = x
     for _ in range(radius):
         src = out
