@@ -5,9 +5,11 @@ the pixels with known truth) and time per pair, all methods timed round-robin in
 with 2 threads, at 640x480 and 1242x375 with 64 and 128 disparities. Data: the Middlebury
 'motorcycle' pair that scikit-image ships, cropped to the target aspect and resized (its truth
 scaled alike); with ``--synthetic`` also one frame of the repository's renderer per size
-("paper" preset at 640x480, "kitti" at 1242x375). Peak extra memory of the default matcher and
-of SGM at 1242x375 / 128 disparities is the process RSS high-water mark (VmHWM) growth in a
-fresh subprocess, so torch's CPU allocations are seen.
+("paper" preset at 640x480, "kitti" at 1242x375). The default matcher runs compiled on CPU
+(numba); it is also timed with that switched off, as the eager torch int16 path, which gives the
+same outputs. Peak extra memory of the default matcher (both paths) and of SGM at 1242x375 /
+128 disparities is the process RSS high-water mark (VmHWM) growth in a fresh subprocess, so
+torch's CPU allocations are seen.
 
     python benchmarks/stereo.py            # full run (a few minutes)
     python benchmarks/stereo.py --quick    # 640x480 / 64 only, fewer repeats
@@ -28,6 +30,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import egorefine.stereo.matching as matching  # noqa: E402
 from benchmarks._common import (  # noqa: E402
     markdown_table,
     omp_setting,
@@ -50,6 +53,8 @@ OURS = {
     "ours sgm (census, 4 paths)": {"cost": "census", "aggregation": "sgm", "block_size": 5},
     "ours differentiable (sad)": {"differentiable": True},
 }
+# the default matcher with its compiled CPU form switched off: the eager torch int16 path (same outputs)
+TORCH_PATH = "ours sad (default), eager torch path"
 
 
 def motorcycle(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -114,16 +119,22 @@ def methods(left: np.ndarray, right: np.ndarray, num: int) -> dict:
 
         return run
 
-    def ours(kw):
+    def ours(kw, compiled=True):
         def run():
-            with torch.no_grad():
-                out = match_stereo(tl, tr, num, **kw)
+            previous = matching._COMPILED_SAD
+            matching._COMPILED_SAD = compiled
+            try:
+                with torch.no_grad():
+                    out = match_stereo(tl, tr, num, **kw)
+            finally:
+                matching._COMPILED_SAD = previous
             return out.disparity[0, 0].numpy(), out.valid[0, 0].numpy()
 
         return run
 
     fns = {f"opencv bm (block {BM_BLOCK})": opencv(bm), f"opencv sgbm 3way (block {SGBM_BLOCK})": opencv(sgbm)}
     fns.update({name: ours(kw) for name, kw in OURS.items()})
+    fns[TORCH_PATH] = ours({}, compiled=False)
     return fns
 
 
@@ -132,6 +143,8 @@ import json, sys, torch
 sys.path.insert(0, {root!r})
 torch.set_num_threads(2)
 from egorefine.stereo import match_stereo
+import egorefine.stereo.matching as matching
+matching._COMPILED_SAD = {compiled!r}
 def hwm():
     for line in open('/proc/self/status'):
         if line.startswith('VmHWM'):
@@ -146,9 +159,10 @@ print(json.dumps({{"extra_mb": (hwm() - before) / 2**20}}))
 """
 
 
-def peak_memory(kw: dict) -> float:
+def peak_memory(kw: dict, compiled: bool = True) -> float:
     root = str(Path(__file__).resolve().parents[1])
-    out = subprocess.run([sys.executable, "-c", _MEMORY_SNIPPET.format(root=root, kw=kw)], capture_output=True,
+    snippet = _MEMORY_SNIPPET.format(root=root, kw=kw, compiled=compiled)
+    out = subprocess.run([sys.executable, "-c", snippet], capture_output=True,
                          text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])["extra_mb"]
 
@@ -181,7 +195,7 @@ def main() -> None:
             timing = {}
             if data_name == "motorcycle":  # time once per size (timing does not depend on the content much)
                 bm, sgbm, default = list(fns)[:3]
-                fast = (bm, sgbm, default, "ours sgm (census, 4 paths)")
+                fast = (bm, sgbm, default, TORCH_PATH, "ours sgm (census, 4 paths)")
                 timing = time_interleaved({k: fns[k] for k in fast}, repeats=fast_repeats, burst=3)
                 # the accuracy pass above already warmed every method up
                 slow = time_interleaved({k: fns[k] for k in fns if k not in fast}, repeats=slow_repeats, warmup=0)
@@ -198,8 +212,8 @@ def main() -> None:
 
     memory = {}
     if not args.quick:
-        for name in ("ours sad (default)", "ours sgm (census, 4 paths)"):
-            memory[name] = peak_memory(OURS[name])
+        for name in ("ours sad (default)", TORCH_PATH, "ours sgm (census, 4 paths)"):
+            memory[name] = peak_memory(OURS.get(name, {}), compiled=name != TORCH_PATH)
             print(f"peak extra memory 1242x375/128 {name}: {memory[name]:.0f} MB", flush=True)
 
     # a quick run is a smoke run: its own git-ignored file, and the README keeps the full run's table

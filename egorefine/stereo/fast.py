@@ -1,10 +1,12 @@
 """Exact integer fast path of the default matcher: SAD of the x-Sobel prefiltered images,
 box aggregation, winner-takes-all with sub-pixel fit and left-right / uniqueness checks.
 
-Used by :func:`egorefine.stereo.match_stereo` when no gradient is needed. The clipped x-Sobel
-responses are quantised to integers (``round(255 * scale * g)``, ``scale`` sub-grey-levels; for
-8-bit images this is exact as in OpenCV's StereoBM) so that the whole cost volume lives in
-int16: absolute differences and their box sums are exact integers, and every full-volume pass
+Used by :func:`egorefine.stereo.match_stereo` when no gradient is needed and the compiled form
+(:mod:`egorefine.stereo._sad_numba`: float32 CPU tensors, same outputs) does not apply: GPU
+tensors, float64, or numba missing. It is also the reference the compiled form is tested
+against. The clipped x-Sobel responses are quantised to integers (``round(255 * scale * g)``,
+``scale`` sub-grey-levels; for 8-bit images this is exact as in OpenCV's StereoBM) so that the
+whole cost volume lives in int16: absolute differences and their box sums are exact integers, and every full-volume pass
 moves half the bytes of float32 (CPU int16 kernels are vectorised twice as wide). Only the
 winner's, its neighbours' and the runner-up's costs are converted to float.
 

@@ -5,8 +5,9 @@ The box-aggregated path works on strips of rows so that memory stays at a few
 ``(B, D, h, W)`` strips whatever the image size; SGM needs the whole volume (its vertical
 paths cross every row) and holds about four ``(B, D, H, W)`` volumes. The default matcher
 (SAD on the x-Sobel prefiltered images, box aggregation) runs in exact int16 arithmetic
-(:mod:`egorefine.stereo.fast`) whenever no gradient is needed; census + SGM on float32 CPU
-tensors without gradient runs compiled (:mod:`egorefine.stereo._sgm_numba`, numba; about
+whenever no gradient is needed: compiled for float32 CPU tensors (:mod:`egorefine.stereo._sad_numba`,
+numba), in torch otherwise (:mod:`egorefine.stereo.fast`), with the same results. Census + SGM on
+float32 CPU tensors without gradient runs compiled too (:mod:`egorefine.stereo._sgm_numba`; about
 6 bytes per candidate), with the same results as the torch path.
 """
 
@@ -28,7 +29,7 @@ from ..core import (
     check_shape,
     to_grey,
 )
-from . import _sgm_numba
+from . import _sad_numba, _sgm_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
@@ -43,6 +44,8 @@ _SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (0.5, 3.0
 _TEMPERATURES = {"sad": 0.008, "zncc": 0.05, "census": 0.2}
 # the exact int16 path of the default SAD matcher (False: always the float path, for comparisons)
 _INTEGER_PATH = True
+# its compiled CPU form (False: the torch integer path, for comparisons; both give the same outputs)
+_COMPILED_SAD = True
 _STRIP_ELEMENTS = 1 << 19  # ~2 MB of float32 per strip volume: stays in cache
 # INVALID_COST's float32 bit pattern read as int32 (the encoded value of an out-of-view candidate)
 _INVALID_CODE = struct.unpack("<i", struct.pack("<f", INVALID_COST))[0]
@@ -294,6 +297,11 @@ def match_stereo(
     if _INTEGER_PATH and aggregation == "box" and scale > 0 and not (differentiable or needs_grad) and num <= 1 << 14:
         # exact int16 fast path (the decisions of the float path below, without its float rounding;
         # a right-view tie within lr_threshold of the left winner passes the left-right check)
+        if (_COMPILED_SAD and _sad_numba.AVAILABLE and grey_l.device.type == "cpu"
+                and grey_l.dtype == torch.float32):
+            return StereoOutput(*_sad_numba.match_sad_compiled(grey_l, grey_r, max_disparity, min_disparity,
+                                                               block_size, prefilter_cap, scale,
+                                                               {**opts, "texture_threshold": texture_threshold}))
         return StereoOutput(*match_sad_int(grey_l.detach(), grey_r.detach(), max_disparity, min_disparity,
                                            block_size, prefilter_cap, scale,
                                            {**opts, "texture_threshold": texture_threshold}))

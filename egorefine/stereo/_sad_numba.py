@@ -1,0 +1,220 @@
+"""CPU inference path of the default matcher (SAD of the x-Sobel prefiltered images, box aggregation)
+compiled with numba.
+
+The exact integer algorithm of :mod:`egorefine.stereo.fast`, one image row at a time: the
+window's column sums of ``|L - R_d|`` are kept per disparity and slid down the rows (one row
+enters, one leaves), the box sums of a row are built from them, and the winner, its sub-pixel
+neighbours, the right view's minimum (left-right check), the runner-up (uniqueness check) and
+the texture sum are read while the row is in cache. In eager torch the same work is about six
+operator launches per disparity plane and band of rows, and the dispatch, not the arithmetic,
+sets the time; here every loop runs over a contiguous row of one disparity plane, so LLVM
+vectorises it in int16 lanes.
+
+Integer costs are exact, so every decision (winner, ties, the checks) equals the torch integer
+path's; the sub-pixel fit and the variance repeat ``fast._tail``'s float32 operations in its
+order, so the outputs are equal (a test compares them). Bands of rows run as nogil kernels on a
+thread pool (:class:`egorefine.core._jit.Workers`); the output does not depend on the number of
+threads. Memory: a few rows of ``D x W`` int16 per thread, whatever the image size.
+
+``AVAILABLE`` is False when numba cannot be imported; callers then use the torch path.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..core._jit import AVAILABLE, Workers
+from ..core._jit import bands as _bands
+from ..core._jit import jit as _jit
+from .fast import _INVALID, _QUANTISATION_VARIANCE, INVALID_VARIANCE, _quantise
+
+__all__ = ["AVAILABLE", "match_sad_compiled"]
+
+# rows per task: enough that a band's start-up (the window's first 2r + 1 rows) is small beside it,
+# few enough that two threads stay busy to the end
+_MIN_BAND_ROWS = 16
+
+
+if AVAILABLE:
+
+    @_jit(inline="always")
+    def _absdiff(a, b):
+        return max(a, b) - min(a, b)  # |a - b| as max - min: LLVM keeps it in int16 lanes (abs it would widen)
+
+    @_jit(inline="always")
+    def _window_sums(col, pairs, r, out):
+        """``out[x] = sum(col[x : x + 2r + 1])``: the first column plus ``r`` pairs (``pairs``: scratch)."""
+        for u in range(col.shape[0] - 1):
+            pairs[u] = col[u] + col[u + 1]
+        for x in range(out.shape[0]):
+            out[x] = col[x]
+        for i in range(r):
+            o = 1 + 2 * i
+            for x in range(out.shape[0]):
+                out[x] += pairs[x + o]
+
+    @_jit
+    def _band(lp, rp, y0, y1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d_pos, subpixel, parabola,
+              disparity, valid, variance):
+        """Match output rows ``[y0, y1)`` of one image pair.
+
+        ``lp`` ``(H + 2r, W + 2r)`` and ``rp`` ``(H + 2r, W + 2r + max_d)`` are the quantised prefiltered images,
+        replicate-padded (the right one by ``r + max_d`` columns on the left), so that the window of output pixel
+        ``(y, x)`` covers padded rows ``y .. y + 2r`` and left columns ``u = x .. x + 2r``, and candidate ``j``
+        (disparity ``max_d - 1 - j``) reads right column ``u + 1 + j``. ``flt`` holds the float32 constants
+        ``(unit, area * cost_floor, eps, 1 + uniqueness_ratio)``; ``uniq`` enables the uniqueness check,
+        ``guard`` is the left-right tolerance (-1: no left-right check).
+        """
+        wp = lp.shape[1]
+        w = wp - 2 * r
+        k = 2 * r + 1
+        big = np.int16(_INVALID)
+        col = np.zeros((num, wp), np.int16)  # window column sums per candidate
+        tcol = np.zeros(wp, np.int16)  # window column sums of |prefiltered| (texture)
+        pairs = np.empty(wp, np.int16)
+        cost = np.empty((num, w), np.int16)
+        best = np.empty(w, np.int16)
+        jbest = np.empty(w, np.int16)
+        rmin = np.empty(w, np.int16)
+        second = np.empty(w, np.int16)
+        tsum = np.empty(w, np.int16)
+        unit, floor_area, eps, ratio = flt[0], flt[1], flt[2], flt[3]
+        zero, half, two, quarter = np.float32(0.0), np.float32(0.5), np.float32(2.0), np.float32(0.25)
+        one, qvar, bigvar = np.float32(1.0), np.float32(_QUANTISATION_VARIANCE), np.float32(INVALID_VARIANCE)
+        top = np.float32(max_d - 1)
+        for y in range(y0, y1):
+            # slide the window's column sums to row y (all 2r + 1 rows at the band's first row)
+            if y == y0:
+                for t in range(k):
+                    lrow, rrow = lp[y + t], rp[y + t]
+                    for j in range(num):
+                        cj, rj = col[j], rrow[1 + j : 1 + j + wp]
+                        for u in range(wp):
+                            cj[u] += _absdiff(lrow[u], rj[u])
+                    for u in range(wp):
+                        tcol[u] += _absdiff(lrow[u], c_level)
+            else:
+                ln, rn, lo, ro = lp[y + 2 * r], rp[y + 2 * r], lp[y - 1], rp[y - 1]
+                for j in range(num):
+                    # (slices, not offset indices: LLVM vectorises a loop over slices ~10x better here)
+                    cj, rnj, roj = col[j], rn[1 + j : 1 + j + wp], ro[1 + j : 1 + j + wp]
+                    for u in range(wp):
+                        cj[u] += _absdiff(ln[u], rnj[u]) - _absdiff(lo[u], roj[u])
+                for u in range(wp):
+                    tcol[u] += _absdiff(ln[u], c_level) - _absdiff(lo[u], c_level)
+            # box sums of the row: the first column plus r pairs of columns; candidates out of the right view
+            # (x < d) cost _INVALID; the running minimum keeps the first (lowest j: largest d) on ties
+            for x in range(w):
+                best[x] = big
+                jbest[x] = 0
+            for j in range(num):
+                out = cost[j]
+                _window_sums(col[j], pairs, r, out)
+                for x in range(min(max_d - 1 - j, w)):
+                    out[x] = big
+                jj = np.int16(j)
+                for x in range(w):
+                    c = out[x]
+                    jbest[x] = jj if c < best[x] else jbest[x]
+                    best[x] = min(best[x], c)
+            _window_sums(tcol, pairs, r, tsum)
+            if guard >= 0:
+                # the right view's minimum at xr over d: cost_right(xr, d) = cost_left(xr + d, d)
+                for x in range(w):
+                    rmin[x] = big
+                for j in range(max(0, max_d - w), num):
+                    d = max_d - 1 - j
+                    cj, rm = cost[j, d:], rmin[: w - d]
+                    for x in range(w - d):
+                        rm[x] = min(rm[x], cj[x])
+            if uniq:
+                # runner-up beyond +-1 candidate of the winner
+                for x in range(w):
+                    second[x] = big
+                for j in range(num):
+                    cj, lo_j, hi_j = cost[j], np.int16(j - 1), np.int16(j + 1)
+                    for x in range(w):
+                        jb = jbest[x]
+                        second[x] = min(second[x], cj[x] if (jb < lo_j or jb > hi_j) else big)
+            for x in range(w):
+                j = np.int64(jbest[x])
+                b0 = best[x]
+                cp = cost[j - 1, x] if j > 0 else big  # reversed order: j - 1 is d + 1
+                cm = cost[j + 1, x] if j + 1 < num else big
+                hi = max(b0, cp)
+                ok = hi < big
+                inner = max(hi, cm) < big
+                if min_d_pos:
+                    ok = ok and j < num - 1
+                if guard >= 0:
+                    # the right view's minimum at x - d must be reached within guard candidates of d
+                    near = b0
+                    for dj in range(-guard, guard + 1):
+                        jj, xx = j + dj, x - dj
+                        if dj != 0 and 0 <= jj < num and 0 <= xx < w:
+                            near = min(near, cost[jj, xx])
+                    xr = x - (max_d - 1 - j)
+                    ok = ok and near <= (rmin[xr] if xr >= 0 else big)
+                if uniq:
+                    ok = ok and np.float32(second[x]) > np.float32(b0) * ratio
+                ok = ok and tsum[x] >= t_need
+                # fast._tail: sub-pixel fit and variance in float32, in its order of operations
+                fp, fm, c0 = np.float32(cp) * unit, np.float32(cm) * unit, np.float32(b0) * unit
+                fin = one if inner else zero
+                keep = one if ok else zero
+                curvature = (fm - two * c0) + fp
+                denom = two * curvature if parabola else two * (max(fm, fp) - c0)
+                dsp = top - np.float32(j)
+                if subpixel:
+                    dsp += min(max((fm - fp) / max(denom, eps), -half), half) * fin
+                disparity[y, x] = dsp * keep
+                spread = (c0 + floor_area) / (max(curvature, zero) + eps)
+                var = spread * spread * quarter
+                var = (min(var + qvar, bigvar) - one) * fin + one
+                variance[y, x] = var * keep + (one - keep) * bigvar
+                valid[y, x] = ok
+
+
+def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
+                       scale: int, opts: dict, threads: int | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`egorefine.stereo.fast.match_sad_int` for float32 CPU grey pairs, compiled; the same outputs.
+
+    Args:
+        left, right: ``(B, 1, H, W)`` float32 CPU grey images (no gradient needed).
+        max_d, min_d, block, cap, scale, opts: as :func:`~egorefine.stereo.fast.match_sad_int`.
+        threads: worker threads (None: ``torch.get_num_threads()``).
+
+    Returns:
+        ``(disparity, valid, variance)`` each ``(B, 1, H, W)`` (0 and ``INVALID_VARIANCE`` where invalid).
+    """
+    b, _, h, w = left.shape
+    r = block // 2
+    num = max_d - min_d
+    threads = max(1, threads or torch.get_num_threads())
+    lq = _quantise(left.detach(), cap, scale, (r, r, r, r))[1][:, 0].numpy()
+    rq = _quantise(right.detach(), cap, scale, (r + max_d, r, r, r))[1][:, 0].numpy()
+    disparity = np.empty((b, h, w), np.float32)
+    valid = np.empty((b, h, w), np.bool_)
+    variance = np.empty((b, h, w), np.float32)
+    area = float(block * block)
+    uniq = opts["uniqueness_ratio"] > 0
+    flt = np.array([1.0 / (255.0 * scale), opts["cost_floor"] * area, torch.finfo(torch.float32).eps * 16 * area,
+                    1 + opts["uniqueness_ratio"]], dtype=np.float32)
+    guard = min(opts["lr_threshold"], num - 1) if opts["lr_check"] else -1
+    # the texture threshold on the window sum, rounded to float32 as the float path compares it, then up
+    t_need = float(np.float32(opts["texture_threshold"] * area * 255.0 * scale))
+    t_need = int(min(max(np.ceil(t_need), -_INVALID), _INVALID))
+    c_level = np.int16(round(255.0 * scale * cap))
+    parts = max(1, min(threads * 2, h // _MIN_BAND_ROWS))
+    tasks = [(i, y0, y1) for i in range(b) for y0, y1 in _bands(h, parts)]
+
+    def task(t: tuple[int, int, int]) -> None:
+        i, y0, y1 = t
+        _band(lq[i], rq[i], y0, y1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d > 0,
+              bool(opts["subpixel"]), opts["subpixel_fit"] == "parabola", disparity[i], valid[i], variance[i])
+
+    Workers(threads).map(task, tasks)
+    return (torch.from_numpy(disparity).unsqueeze(1), torch.from_numpy(valid).unsqueeze(1),
+            torch.from_numpy(variance).unsqueeze(1))
