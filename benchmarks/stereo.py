@@ -13,6 +13,7 @@ torch's CPU allocations are seen.
 
     python benchmarks/stereo.py            # full run (a few minutes)
     python benchmarks/stereo.py --quick    # 640x480 / 64 only, fewer repeats
+    python benchmarks/stereo.py --quick --torch-compile  # and the torch path under torch.compile
 
 Writes benchmarks/results/stereo.json and the README's ``stereo`` table.
 """
@@ -55,6 +56,7 @@ OURS = {
 }
 # the default matcher with its compiled CPU form switched off: the eager torch int16 path (same outputs)
 TORCH_PATH = "ours sad (default), eager torch path"
+COMPILED_TORCH_PATH = "ours sad (default), torch path + torch.compile"
 
 
 def motorcycle(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -104,7 +106,7 @@ def score(disp: np.ndarray, valid: np.ndarray, gt: np.ndarray) -> dict:
     }
 
 
-def methods(left: np.ndarray, right: np.ndarray, num: int) -> dict:
+def methods(left: np.ndarray, right: np.ndarray, num: int, torch_compile: bool = False) -> dict:
     """name -> callable returning (disparity float32, valid bool) numpy arrays."""
     bm = cv2.StereoBM_create(num, BM_BLOCK)
     area = SGBM_BLOCK * SGBM_BLOCK
@@ -119,13 +121,13 @@ def methods(left: np.ndarray, right: np.ndarray, num: int) -> dict:
 
         return run
 
-    def ours(kw, compiled=True):
+    def ours(kw, compiled=True, fn=match_stereo):
         def run():
             previous = matching._COMPILED_SAD
             matching._COMPILED_SAD = compiled
             try:
                 with torch.no_grad():
-                    out = match_stereo(tl, tr, num, **kw)
+                    out = fn(tl, tr, num, **kw)
             finally:
                 matching._COMPILED_SAD = previous
             return out.disparity[0, 0].numpy(), out.valid[0, 0].numpy()
@@ -135,6 +137,8 @@ def methods(left: np.ndarray, right: np.ndarray, num: int) -> dict:
     fns = {f"opencv bm (block {BM_BLOCK})": opencv(bm), f"opencv sgbm 3way (block {SGBM_BLOCK})": opencv(sgbm)}
     fns.update({name: ours(kw) for name, kw in OURS.items()})
     fns[TORCH_PATH] = ours({}, compiled=False)
+    if torch_compile:  # the torch path under torch.compile (its first call, in the accuracy pass, compiles)
+        fns[COMPILED_TORCH_PATH] = ours({}, compiled=False, fn=torch.compile(match_stereo))
     return fns
 
 
@@ -172,6 +176,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="640x480 / 64 disparities only, fewer repeats")
     parser.add_argument("--synthetic", action="store_true", help="also score one rendered frame per size")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--torch-compile", action="store_true",
+                        help="also time the default matcher's torch path under torch.compile (compiles first)")
     parser.add_argument("--table-only", action="store_true", help="rewrite the table from the last JSON")
     args = parser.parse_args()
     if args.table_only:
@@ -190,12 +196,13 @@ def main() -> None:
         if args.synthetic:
             datasets["synthetic"] = synthetic(width, height)
         for data_name, (left, right, gt) in datasets.items():
-            fns = methods(left, right, num)
+            fns = methods(left, right, num, args.torch_compile)
             acc = {name: score(*fn(), gt) for name, fn in fns.items()}
             timing = {}
             if data_name == "motorcycle":  # time once per size (timing does not depend on the content much)
                 bm, sgbm, default = list(fns)[:3]
-                fast = (bm, sgbm, default, TORCH_PATH, "ours sgm (census, 4 paths)")
+                fast = (bm, sgbm, default, TORCH_PATH, "ours sgm (census, 4 paths)",
+                        *[k for k in (COMPILED_TORCH_PATH,) if k in fns])
                 timing = time_interleaved({k: fns[k] for k in fast}, repeats=fast_repeats, burst=3)
                 # the accuracy pass above already warmed every method up
                 slow = time_interleaved({k: fns[k] for k in fns if k not in fast}, repeats=slow_repeats, warmup=0)
