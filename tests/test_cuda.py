@@ -10,8 +10,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from egorefine.core import _graphs
 from egorefine.data import render_sequence
+from egorefine.geometry import make_intrinsics, project, transform_points, twist_to_motion, unproject
 from egorefine.metrics import epe, translation_error
+from egorefine.motion import solve_ego_motion
 from egorefine.refine import EgoMotionRefiner, predict_disparity
 from egorefine.stereo import match_stereo
 
@@ -88,3 +91,31 @@ def test_gradients_on_cuda(seq):
                              torch.tensor([seq.baseline], device=CUDA), mode="soft")
     pred.disparity.sum().backward()
     assert torch.isfinite(disparity.grad).all() and disparity.grad.abs().sum() > 0
+
+
+def _tracks(twist: torch.Tensor, num: int = 300, seed: int = 0):
+    """Points at 2-15 m seen in frame t-1, moved by ``twist_to_motion(twist)``, projected, with 0.3 px noise."""
+    B = twist.shape[0]
+    gen = torch.Generator().manual_seed(seed)
+    K = make_intrinsics(400.0, 319.5, 239.5, B)
+    pts = torch.rand(B, num, 2, generator=gen) * torch.tensor([600.0, 440.0]) + 20.0
+    Z = torch.rand(B, num, generator=gen) * 13.0 + 2.0
+    nxt = project(transform_points(twist_to_motion(twist), unproject(pts, Z, K)), K)
+    nxt = nxt + 0.3 * torch.randn(B, num, 2, generator=gen)
+    baseline = torch.full((B,), 0.1)
+    return pts, nxt, 400.0 * 0.1 / Z, K, baseline
+
+
+def test_solve_graph_replay_equals_eager(monkeypatch):
+    # the LM of the exact solve is replayed from a CUDA graph for inference: the same kernels, so the same bits
+    twist = torch.tensor([[0.02, -0.01, 0.1, 0.005, -0.01, 0.003], [0.0, 0.03, 0.08, -0.004, 0.002, 0.01]])
+    for seed in (0, 1, 2):  # the first call records, the next ones replay on other values
+        args = [a.to(CUDA) for a in _tracks(twist, seed=seed)]
+        graphed = solve_ego_motion(*args)
+        monkeypatch.setattr(_graphs, "ENABLED", False)
+        eager = solve_ego_motion(*args)
+        monkeypatch.setattr(_graphs, "ENABLED", True)
+        for a, b in zip(graphed, eager, strict=True):
+            assert torch.equal(a, b)
+        assert translation_error(graphed.motion.cpu(), twist_to_motion(twist)).max() < 0.005
+    assert any(key[0][0] == "lm" and entry is not None for key, entry in _graphs._graphs.items()), "nothing replayed"

@@ -40,6 +40,7 @@ matrix (its extreme eigenvalues), which is invariant to the units of the unknown
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -48,6 +49,7 @@ from torch import nn
 from ..core import (
     ShapeError,
     ValueRangeError,
+    _graphs,
     check_choice,
     check_finite,
     check_float,
@@ -202,7 +204,10 @@ def _solve_normal(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor | floa
     if isinstance(damping, torch.Tensor):
         damping = damping[..., None, None]
     L, _ = torch.linalg.cholesky_ex(Hs + damping * eye)
-    x = torch.cholesky_solve((g * s)[..., None], L)[..., 0] * s
+    # two triangular solves rather than cholesky_solve: for batches on CUDA that one runs MAGMA, which allocates
+    # memory on every call, so a CUDA graph cannot record it (cuBLAS's batched triangular solve it can)
+    y = torch.linalg.solve_triangular(L, (g * s)[..., None], upper=False)
+    x = torch.linalg.solve_triangular(L.mT, y, upper=True)[..., 0] * s
     return x, Hs
 
 
@@ -339,14 +344,23 @@ def _irls_system(S: torch.Tensor, gate: torch.Tensor, loss: str, scale: float) -
     return G[:, :6, :6], G[:, :6, 6]
 
 
+_GENERATORS: dict[tuple[torch.device, torch.dtype], torch.Tensor] = {}
+
+
 def _se3_generators(like: torch.Tensor) -> torch.Tensor:
-    """The 6 generators of se(3) as ``(6, 16)``: ``delta @ G`` is the 4x4 twist matrix of ``delta = (rho, phi)``."""
-    G = torch.zeros(6, 4, 4, dtype=like.dtype, device=like.device)
-    G[0, 0, 3] = G[1, 1, 3] = G[2, 2, 3] = 1.0
-    G[3, 2, 1], G[3, 1, 2] = 1.0, -1.0
-    G[4, 0, 2], G[4, 2, 0] = 1.0, -1.0
-    G[5, 1, 0], G[5, 0, 1] = 1.0, -1.0
-    return G.view(6, 16)
+    """The 6 generators of se(3) as ``(6, 16)``: ``delta @ G`` is the 4x4 twist matrix of ``delta = (rho, phi)``.
+
+    Built once per device and dtype (a CUDA graph may not record the host-to-device copies of building it).
+    """
+    key = (like.device, like.dtype)
+    if key not in _GENERATORS:
+        G = torch.zeros(6, 4, 4, dtype=like.dtype)
+        G[0, 0, 3] = G[1, 1, 3] = G[2, 2, 3] = 1.0
+        G[3, 2, 1], G[3, 1, 2] = 1.0, -1.0
+        G[4, 0, 2], G[4, 2, 0] = 1.0, -1.0
+        G[5, 1, 0], G[5, 0, 1] = 1.0, -1.0
+        _GENERATORS[key] = G.view(6, 16).to(like.device)
+    return _GENERATORS[key]
 
 
 def _twist_exp(delta: torch.Tensor, G: torch.Tensor, halvings: int = 3, degree: int = 8) -> torch.Tensor:
@@ -403,6 +417,14 @@ def _levenberg_marquardt(
     gate, loss, _ = stages[-1]
     H, _ = _irls_system(S, gate, loss, scale)  # at the final state, for the quality flag
     return motion, S, _jacobi_scaled(H)[0]
+
+
+def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor,
+                  gate_huber: torch.Tensor, gate_late: torch.Tensor, *, loss: str, first: int, second: int,
+                  scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The exact method's LM: ``first`` Huber iterations on ``gate_huber``, then ``second`` with ``loss``."""
+    return _levenberg_marquardt(motion, rays, target, K, [(gate_huber, "huber", first), (gate_late, loss, second)],
+                                scale)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -525,8 +547,12 @@ def solve_ego_motion(
         start = _twist_exp(-start_twist, _se3_generators(twist))
         first = iterations // 2
         late_gate = w if loss == "tukey" else w_in
-        stages = [(w_in, "huber", first), (late_gate, loss, iterations - first)]
-        motion, S, Hs = _levenberg_marquardt(start, rays, points_next, K, stages, scale)
+        lm_inputs = (start, rays, points_next, K, w_in, late_gate)
+        lm = partial(_two_stage_lm, loss=loss, first=first, second=iterations - first, scale=scale)
+        if _graphs.usable(*lm_inputs):  # CUDA inference: the ~300 small launches of the LM replayed as one graph
+            motion, S, Hs = _graphs.replay(lm, ("lm", loss, first, iterations - first, scale), *lm_inputs)
+        else:
+            motion, S, Hs = lm(*lm_inputs)
         rms_r = S[..., _RN] * S[..., _FRONT]
         w_out = late_gate * S[..., _FRONT] * robust_weight(S[..., _RN], loss, scale)
         twist = motion_to_twist(motion)
