@@ -119,3 +119,18 @@ def test_solve_graph_replay_equals_eager(monkeypatch):
             assert torch.equal(a, b)
         assert translation_error(graphed.motion.cpu(), twist_to_motion(twist)).max() < 0.005
     assert any(key[0][0] == "lm" and entry is not None for key, entry in _graphs._graphs.items()), "nothing replayed"
+
+
+def test_sgm_graph_replay_equals_eager(seq, monkeypatch):
+    # SGM's scanline recursion on CUDA is replayed from a CUDA graph for inference: bit for bit the eager result
+    kw = {"cost": "zncc", "aggregation": "sgm", "block_size": 5}
+    for t in range(3):  # the first call records, the next ones replay on other frames
+        left, right = seq.left[t : t + 1].to(CUDA), seq.right[t : t + 1].to(CUDA)
+        graphed = match_stereo(left, right, 24, **kw)
+        monkeypatch.setattr(_graphs, "ENABLED", False)
+        eager = match_stereo(left, right, 24, **kw)
+        monkeypatch.setattr(_graphs, "ENABLED", True)
+        for a, b in zip(graphed, eager, strict=True):
+            assert torch.equal(a, b)
+        assert graphed.valid.float().mean() > 0.5
+    assert any(key[0][0] == "sgm" and entry is not None for key, entry in _graphs._graphs.items()), "nothing replayed"

@@ -1,4 +1,4 @@
-"""CUDA-graph replay of fixed-shape inference steps (egorefine.motion.solve's Levenberg-Marquardt).
+"""CUDA-graph replay of fixed-shape inference steps (the motion solve's Levenberg-Marquardt, SGM's recursion).
 
 On a GPU the iterative solves are hundreds of tiny kernels whose launches, not their arithmetic,
 set the time (about 20 us of host time each, against ~2 us of GPU time). A CUDA graph records
@@ -25,7 +25,9 @@ __all__ = ["ENABLED", "replay", "usable"]
 ENABLED = True
 _graphs: dict[tuple, tuple | None] = {}
 _lock = threading.Lock()
-_MAX_GRAPHS = 64  # distinct keys kept (shapes and settings); the oldest is dropped beyond this
+# distinct keys kept (shapes and settings); the oldest is dropped beyond this. A graph keeps the memory of its
+# intermediate tensors: a few KB for the motion solve, a few cost volumes for SGM (~300 MB at 640x480 / 64)
+_MAX_GRAPHS = 16
 
 
 def usable(*tensors: torch.Tensor) -> bool:

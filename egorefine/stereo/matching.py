@@ -14,6 +14,7 @@ float32 CPU tensors without gradient runs compiled too (:mod:`egorefine.stereo._
 from __future__ import annotations
 
 import struct
+from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -22,6 +23,7 @@ from torch import nn
 from ..core import (
     DTypeError,
     ValueRangeError,
+    _graphs,
     check_choice,
     check_finite,
     check_float,
@@ -218,6 +220,11 @@ def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, to
     return disparity, valid, variance
 
 
+def _sgm_outputs(volume: torch.Tensor, *, p1: float, p2: float, paths: int) -> tuple[torch.Tensor]:
+    """``(sgm_aggregate(volume, p1, p2, paths),)``: the form :func:`egorefine.core._graphs.replay` takes."""
+    return (sgm_aggregate(volume, p1, p2, paths),)
+
+
 def _use_numba_sgm(grey: torch.Tensor, cost: str, num: int, needs_grad: bool) -> bool:
     """The compiled census + SGM path applies: numba present, float32 CPU tensors, no gradient, >= 2 candidates."""
     return (_sgm_numba.AVAILABLE and cost == "census" and not needs_grad and grey.device.type == "cpu"
@@ -324,7 +331,13 @@ def match_stereo(
                                                   census_window, p1, p2, sgm_paths, opts)[:3])
     elif aggregation == "sgm":
         feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
-        vol = sgm_aggregate(strip_volume(feat, 0, h, min_disparity), p1, p2, sgm_paths)
+        vol = strip_volume(feat, 0, h, min_disparity)
+        if _graphs.usable(vol):
+            # CUDA inference: the scanline recursion's ~8 launches per step (2 (H + W) steps) replayed as one graph
+            sgm = partial(_sgm_outputs, p1=p1, p2=p2, paths=sgm_paths)
+            vol = _graphs.replay(sgm, ("sgm", p1, p2, sgm_paths), vol)[0]
+        else:
+            vol = sgm_aggregate(vol, p1, p2, sgm_paths)
         rows = max(1, strip // max(1, b * num * w))
         for y0 in range(0, h, rows):
             parts.append(_select(vol[:, :, y0 : y0 + rows], max_disparity, opts))
