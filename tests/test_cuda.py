@@ -134,3 +134,20 @@ def test_sgm_graph_replay_equals_eager(seq, monkeypatch):
             assert torch.equal(a, b)
         assert graphed.valid.float().mean() > 0.5
     assert any(key[0][0] == "sgm" and entry is not None for key, entry in _graphs._graphs.items()), "nothing replayed"
+
+
+def test_prediction_graph_replay_equals_eager(seq, monkeypatch):
+    # the hard splat on CUDA is replayed from a CUDA graph for inference: bit for bit the eager result
+    K, b = seq.K[None].to(CUDA), torch.tensor([seq.baseline], device=CUDA)
+    g = torch.Generator().manual_seed(3)
+    var = (0.05 + 0.1 * torch.rand(1, 1, 120, 160, generator=g)).to(CUDA)
+    for t in range(3):  # the first call records, the next ones replay on other frames and motions
+        args = (seq.disparity[t : t + 1].to(CUDA), seq.motions[t + 1][None].to(CUDA), K, b)
+        graphed = predict_disparity(*args, variance=var)
+        monkeypatch.setattr(_graphs, "ENABLED", False)
+        eager = predict_disparity(*args, variance=var)
+        monkeypatch.setattr(_graphs, "ENABLED", True)
+        for a, e in zip(graphed, eager, strict=True):
+            assert torch.equal(a, e)
+        assert graphed.valid.float().mean() > 0.9
+    assert any(key[0][0] == "predict" and entry is not None for key, entry in _graphs._graphs.items()), "not replayed"

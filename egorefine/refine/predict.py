@@ -69,6 +69,7 @@ off by more than 0.5 px after 10 frames, all at depth edges.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -76,6 +77,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..core import (
+    _graphs,
     check_choice,
     check_finite,
     check_float,
@@ -342,6 +344,13 @@ def predict_disparity(
     )
     if not (mode == "hard" and refine_iterations > 0 and _compiled(fast, disparity)):
         check_finite(disparity, "disparity")  # (the compiled path tests it inside its kernels)
+    settings = (mode, process_noise, hole_variance, fill_holes, temperature, refine_iterations, surface_tolerance)
+    if fast and _graphs.usable(disparity, motion, K, baseline):
+        # CUDA inference: the splat's ~150 launches replayed from a CUDA graph recorded per shape and settings
+        inputs = [t for t in (disparity, motion, K, baseline, variance, valid) if t is not None]
+        has = (variance is not None, valid is not None)
+        splat = partial(_predict_inputs, has=has, settings=settings)
+        return Prediction(*_graphs.replay(splat, ("predict", has, settings), *inputs))
     with torch.set_grad_enabled(not fast):
         return _predict(
             disparity,
@@ -359,6 +368,16 @@ def predict_disparity(
             surface_tolerance,
             fast,
         )
+
+
+def _predict_inputs(*inputs: torch.Tensor, has: tuple[bool, bool], settings: tuple) -> tuple[torch.Tensor, ...]:
+    """:func:`_predict` without gradients from ``(disparity, motion, K, baseline[, variance][, valid])``, ``has``
+    saying which of the optional two are there: the form :func:`egorefine.core._graphs.replay` takes."""
+    disparity, motion, K, baseline, *rest = inputs
+    variance = rest.pop(0) if has[0] else None
+    valid = rest.pop(0) if has[1] else None
+    with torch.no_grad():
+        return tuple(_predict(disparity, motion, K, baseline, variance, valid, *settings, True))
 
 
 def _predict(
