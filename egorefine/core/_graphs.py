@@ -1,6 +1,7 @@
-"""CUDA-graph replay of fixed-shape inference steps (the motion solve's Levenberg-Marquardt, SGM's recursion).
+"""CUDA-graph replay of fixed-shape inference steps: the motion solve's Levenberg-Marquardt, SGM's scanline
+recursion and the prediction's hard splat.
 
-On a GPU the iterative solves are hundreds of tiny kernels whose launches, not their arithmetic,
+On a GPU these are hundreds to thousands of small kernels whose launches, not their arithmetic,
 set the time (about 20 us of host time each, against ~2 us of GPU time). A CUDA graph records
 the launches of one call once and replays them with a single launch. A graph is recorded per
 key (the caller's shapes and settings) on the first call and replayed on the next ones: the
@@ -26,7 +27,8 @@ ENABLED = True
 _graphs: dict[tuple, tuple | None] = {}
 _lock = threading.Lock()
 # distinct keys kept (shapes and settings); the oldest is dropped beyond this. A graph keeps the memory of its
-# intermediate tensors: a few KB for the motion solve, a few cost volumes for SGM (~300 MB at 640x480 / 64)
+# intermediate tensors: a few KB for the motion solve, a few maps for the splat, a few cost volumes for SGM
+# (~300 MB at 640x480 / 64)
 _MAX_GRAPHS = 16
 
 
