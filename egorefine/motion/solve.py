@@ -59,6 +59,7 @@ from ..core import (
     eps_like,
 )
 from ..geometry import motion_to_twist, twist_to_motion
+from . import _lm_numba
 from .field import motion_field_jacobian
 from .robust import LOSSES, robust_loss, robust_weight
 
@@ -419,6 +420,17 @@ def _levenberg_marquardt(
     return motion, S, _jacobi_scaled(H)[0]
 
 
+# the compiled CPU form of the LM (False: always the torch path, for comparisons)
+_COMPILED_LM = True
+
+
+def _compiled_lm(*tensors: torch.Tensor) -> bool:
+    """The compiled LM applies: numba present, float32/64 CPU tensors, no gradient wanted."""
+    return (_COMPILED_LM and _lm_numba.AVAILABLE and all(t.device.type == "cpu" for t in tensors)
+            and tensors[0].dtype in (torch.float32, torch.float64)
+            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)))
+
+
 def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor,
                   gate_huber: torch.Tensor, gate_late: torch.Tensor, *, loss: str, first: int, second: int,
                   scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -551,6 +563,9 @@ def solve_ego_motion(
         lm = partial(_two_stage_lm, loss=loss, first=first, second=iterations - first, scale=scale)
         if _graphs.usable(*lm_inputs):  # CUDA inference: the ~300 small launches of the LM replayed as one graph
             motion, S, Hs = _graphs.replay(lm, ("lm", loss, first, iterations - first, scale), *lm_inputs)
+        elif _compiled_lm(*lm_inputs):  # CPU inference: the same LM compiled (numba)
+            motion, S, Hs = _lm_numba.two_stage_lm(*lm_inputs, loss=loss, first=first, second=iterations - first,
+                                                   scale=scale)
         else:
             motion, S, Hs = lm(*lm_inputs)
         rms_r = S[..., _RN] * S[..., _FRONT]
