@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..core import eps_like
 from ..core._jit import AVAILABLE
 from ..core._jit import jit as _jit
 from .robust import HUBER_K, TUKEY_C
@@ -25,7 +26,6 @@ from .robust import HUBER_K, TUKEY_C
 __all__ = ["AVAILABLE", "two_stage_lm"]
 
 _LOSS_CODES = {"l2": 0, "huber": 1, "tukey": 2}
-_EPS = {torch.float32: 1e-6, torch.float64: 1e-12}  # egorefine.core.numerics.eps_like of the input dtype
 
 if AVAILABLE:
 
@@ -240,5 +240,5 @@ def two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor,
     S = np.empty((B, N, 16))
     Hs = np.empty((B, 6, 6))
     _lm(m, f64(rays), f64(target), cams, gates, codes, ks, np.array([first, second], dtype=np.int64),
-        _EPS.get(dtype, 1e-6), float(torch.finfo(dtype).tiny), S, Hs)
+        eps_like(motion), float(torch.finfo(dtype).tiny), S, Hs)
     return tuple(torch.from_numpy(x).to(dtype) for x in (m, S, Hs))
