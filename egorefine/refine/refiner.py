@@ -38,7 +38,7 @@ from ..core import (
 from ..features import build_pyramid, replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
-from ..stereo import match_stereo
+from ..stereo import match_residual, match_stereo
 from .correct import correct_disparity, edge_variance
 from .cracks import close_cracks
 from .predict import predict_disparity
@@ -194,6 +194,15 @@ class EgoMotionRefiner(nn.Module):
             0.051/0.007/0.979 and 0.113/0.022/0.960 with them; at 1, 0.048/0.008/0.998 and 0.096/0.015/0.996
             become 0.044/0.005/0.992 and 0.091/0.012/0.987. The rules trade ~1 % of density for accuracy.
 
+        local_search: on frames without stereo, a residual match (:func:`~egorefine.stereo.match_residual`) searches
+            ``prediction +- local_search`` px around the valid predicted pixels with the matcher's cost and corrects
+            the prediction with it (the ``fusion`` rule). 0 (the default) turns it off: the paper's loop. Frames
+            given without a right image skip it. It costs ``2 local_search + 1`` cost planes instead of the full
+            range (5 of 128 on the KITTI-like rig) and catches keyframe errors that grow as the rig approaches a
+            surface (a disparity error scales with the square of the magnification), which prediction alone
+            carries on. Hole-filled pixels are not searched: on the benchmark scenes their background fill made
+            poor priors (EPE 0.064 to 0.083 px on the corridor sequence when they were).
+
     Example:
         >>> from egorefine.data import render_sequence
         >>> seq = render_sequence(num_frames=3, height=60, width=80)
@@ -232,6 +241,7 @@ class EgoMotionRefiner(nn.Module):
         edge_aware: bool = True,
         max_unverified_variance: float | None = 0.0625,
         edge_kernel: int = 3,
+        local_search: int = 0,
     ) -> None:
         super().__init__()
         check_choice(fusion, ("paper", "kalman"), "fusion")
@@ -255,6 +265,8 @@ class EgoMotionRefiner(nn.Module):
             raise ValueRangeError(f"max_unverified_variance: expected > 0 or None, got {max_unverified_variance}")
         if int(edge_kernel) < 1 or int(edge_kernel) % 2 == 0:
             raise ValueRangeError(f"edge_kernel: expected a positive odd integer, got {edge_kernel}")
+        if int(local_search) != local_search or local_search < 0 or local_search == 1:
+            raise ValueRangeError(f"local_search: expected 0 (off) or an integer >= 2, got {local_search}")
         if int(max_disparity) <= int(min_disparity):
             raise ValueRangeError(f"max_disparity: must exceed min_disparity={min_disparity}, got {max_disparity}")
         self.max_disparity = int(max_disparity)
@@ -277,6 +289,7 @@ class EgoMotionRefiner(nn.Module):
         self.edge_aware = bool(edge_aware)
         self.max_unverified_variance = None if max_unverified_variance is None else float(max_unverified_variance)
         self.edge_kernel = int(edge_kernel)
+        self.local_search = int(local_search)
         # Only the matcher options the caller set are passed on: the matcher's own defaults apply otherwise.
         self.stereo_options = {
             k: v
@@ -452,6 +465,21 @@ class EgoMotionRefiner(nn.Module):
             variance = torch.where(bad, meas.variance, cor.variance)
             valid = torch.where(bad, meas.valid, cor.valid)
             outliers = torch.where(bad, torch.zeros_like(cor.outlier_count), cor.outlier_count)
+            confidence = _confidence(valid, variance)
+        elif self.local_search and right is not None:
+            # 4'. no stereo on this frame: a narrow residual search around the prediction corrects it.
+            block = {"block_size": self.stereo_options["block_size"]} if "block_size" in self.stereo_options else {}
+            meas = match_residual(grey, to_grey(right), pred.disparity, radius=self.local_search,
+                                  prior_valid=pred.valid, **block)
+            pred_var = pred.variance
+            if self.fusion == "kalman" and self.edge_aware:
+                pred_var = pred_var + edge_variance(pred.disparity, pred.valid, self.edge_kernel)
+            cor = correct_disparity(
+                pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
+                predicted_variance=pred_var, measured_variance=meas.variance, predicted_valid=pred.valid,
+                outlier_count=state.outlier_count, kalman_gate=self.kalman_gate, reset_after=self.reset_after,
+            )
+            disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             confidence = _confidence(valid, variance)
         # 5. keep the tracks, top up when they thin out.
         keypoints, weights = tracked.keypoints, tracked.weights

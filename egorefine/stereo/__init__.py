@@ -4,11 +4,13 @@ winner-takes-all with sub-pixel fit or soft-argmin, and left-right / uniqueness 
 from ._sgm_numba import release_workspace as release_sgm_workspace
 from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
 from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, match_stereo
+from .residual import match_residual
 from .sgm import sgm_aggregate
 
 __all__ = [
     "block_matching",
     "match_stereo",
+    "match_residual",
     "BlockMatching",
     "StereoOutput",
     "cost_volume",

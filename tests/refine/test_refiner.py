@@ -256,3 +256,36 @@ def test_validity_rule_settings_are_checked():
     with pytest.raises(ValueRangeError, match="edge_kernel"):
         EgoMotionRefiner(edge_kernel=4)
     EgoMotionRefiner(max_unverified_variance=None, edge_aware=False)  # the rules off: the loop as before them
+
+
+@pytest.mark.parametrize("fusion", ["kalman", "paper"])
+def test_local_search_corrects_a_wrong_keyframe(small_seq, fusion):
+    """A keyframe 1 px off is carried by prediction alone; the +-2 px residual search pulls it back."""
+    K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
+    truth = small_seq.disparity
+    errors = {}
+    for radius in (0, 2):
+        refiner = EgoMotionRefiner(verify_every=10, fusion=fusion, local_search=radius, **SMALL)
+        out, state = refiner(small_seq.left[:1], small_seq.right[:1], K, b, None)
+        key = state.key_disparity + 1.0
+        state = state._replace(key_disparity=key, disparity=key)
+        for t in range(1, 4):
+            out, state = refiner(small_seq.left[t : t + 1], small_seq.right[t : t + 1], K, b, state)
+            assert not out.stereo_ran and torch.isfinite(out.disparity).all()
+        scored = out.valid & (truth[3:4] > 0) & ~small_seq.occluded[3:4]
+        errors[radius] = (out.disparity - truth[3:4]).abs()[scored].median().item()
+    assert errors[0] > 0.8  # prediction alone keeps the offset (it grows with the approach)
+    if fusion == "kalman":  # fused by the variances: the measurement wins over a prediction carried 3 frames
+        assert errors[2] < 0.15
+    else:  # the paper's rule moves 40 % of the way, once per frame (each frame is predicted from the keyframe)
+        assert 0.5 * errors[0] < errors[2] < 0.7 * errors[0]
+
+
+def test_local_search_needs_right_images_only_when_given(small_seq):
+    K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
+    refiner = EgoMotionRefiner(verify_every=10, local_search=2, **SMALL)
+    _, state = refiner(small_seq.left[:1], small_seq.right[:1], K, b, None)
+    out, _ = refiner(small_seq.left[1:2], None, K, b, state)  # no right image: the search is skipped
+    assert not out.stereo_ran and torch.isfinite(out.disparity).all()
+    with pytest.raises(ValueRangeError, match="local_search"):
+        EgoMotionRefiner(local_search=1)

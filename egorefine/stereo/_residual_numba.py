@@ -1,0 +1,173 @@
+"""CPU inference path of :func:`egorefine.stereo.residual.match_residual`, compiled with numba.
+
+The torch path's formulas in float32, one band of rows at a time: the ``2 radius + 1`` planes of
+``|L' - R'(warped)|`` are built for the band's rows (plus the window's margin) once, then every
+output row sums its window (column sums, then row sums) and reads the winner, its neighbours, the
+runner-up and the texture sum while the row is in cache. The sums are added in another order than
+``avg_pool2d``'s, so the costs agree to float32 rounding, not bit for bit. Bands run as nogil
+kernels on :class:`egorefine.core._jit.Workers`; the output does not depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..core._jit import AVAILABLE, Workers
+from ..core._jit import bands as _bands
+from ..core._jit import jit as _jit
+from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE
+
+__all__ = ["AVAILABLE", "match_residual"]
+
+_MIN_BAND_ROWS = 16
+_F = np.float32
+
+
+if AVAILABLE:
+
+    @_jit
+    def _band(lp, rp, prior, ok, y0, y1, radius, r, parabola, uniq, t_need, flt, disparity, valid, variance):
+        """Output rows ``[y0, y1)`` of one image pair. ``flt``: ``(area * cost floor, eps, 1 + uniqueness)``."""
+        H, W = lp.shape
+        n = 2 * radius + 1
+        a0, a1 = max(y0 - r, 0), min(y1 + r, H)
+        diff = np.empty((n, a1 - a0, W), np.float32)
+        top = _F(W - 1)
+        for y in range(a0, a1):
+            lrow, rrow, prow, okrow = lp[y], rp[y], prior[y], ok[y]
+            for x in range(W):
+                # as the torch path: the prior counts as 0 where it may not be used
+                base = _F(x) - (prow[x] if okrow[x] and np.isfinite(prow[x]) else _F(0.0))
+                fl = np.floor(base)
+                fr = base - fl
+                lv = lrow[x]
+                for j in range(n):
+                    i = np.int64(fl) - (j - radius)
+                    if i >= 0 and i <= W - 2:  # inside: floor and fraction are the band centre's, shifted
+                        v0 = rrow[i]
+                        diff[j, y - a0, x] = abs(lv - (v0 + fr * (rrow[i + 1] - v0)))
+                    else:  # the torch path's clamp to [0, W - 1]
+                        sc = min(max(base - _F(j - radius), _F(0.0)), top)
+                        x0 = min(np.floor(sc), _F(W - 2))
+                        f = sc - x0
+                        v0 = rrow[np.int64(x0)]
+                        diff[j, y - a0, x] = abs(lv - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
+        m = W - 2 * r  # window sums are kept for x in [r, W - r), at index x - r
+        cols = np.empty((n, W), np.float32)
+        cost = np.empty((n, m), np.float32)
+        tcol = np.empty(W, np.float32)
+        tsum = np.empty(m, np.float32)
+        c0, runner = np.empty(m, np.float32), np.empty(m, np.float32)
+        cm, cp = np.empty(m, np.float32), np.empty(m, np.float32)
+        best = np.empty(m, np.int32)
+        for y in range(y0, y1):
+            drow, vrow, varrow = disparity[y], valid[y], variance[y]
+            for x in range(W):
+                drow[x] = _F(0.0)
+                vrow[x] = False
+                varrow[x] = _F(INVALID_VARIANCE)
+            if y < r or y >= H - r:
+                continue
+            for j in range(n):
+                col = cols[j]
+                if y == max(y0, r):  # the band's first row: the window's full column sums
+                    first = diff[j, y - r - a0]
+                    for x in range(W):
+                        col[x] = first[x]
+                    for v in range(y - r + 1 - a0, y + r + 1 - a0):
+                        plane = diff[j, v]
+                        for x in range(W):
+                            col[x] += plane[x]
+                else:  # slide down one row: one row enters, one leaves
+                    enter, leave = diff[j, y + r - a0], diff[j, y - r - 1 - a0]
+                    for x in range(W):
+                        col[x] += enter[x] - leave[x]
+                c = cost[j]
+                for x in range(m):
+                    c[x] = col[x]
+                for u in range(1, 2 * r + 1):
+                    seg = col[u:u + m]
+                    for x in range(m):
+                        c[x] += seg[x]
+            for x in range(W):
+                tcol[x] = abs(lp[y - r, x])
+            for v in range(y - r + 1, y + r + 1):
+                lrow = lp[v]
+                for x in range(W):
+                    tcol[x] += abs(lrow[x])
+            for x in range(m):
+                tsum[x] = tcol[x]
+            for u in range(1, 2 * r + 1):
+                seg = tcol[u:u + m]
+                for x in range(m):
+                    tsum[x] += seg[x]
+            # winner, runner-up and the winner's neighbours, as loops over the row (LLVM vectorises them)
+            for x in range(m):
+                c0[x] = cost[0, x]
+                best[x] = 0
+            for j in range(1, n):
+                c = cost[j]
+                for x in range(m):
+                    lower = c[x] < c0[x]
+                    c0[x] = c[x] if lower else c0[x]
+                    best[x] = np.int32(j) if lower else best[x]
+            for x in range(m):
+                runner[x] = _F(np.inf)
+            for j in range(n):
+                c = cost[j]
+                for x in range(m):
+                    step = np.int32(j) - best[x]
+                    v = c[x] if step * step > 1 else _F(np.inf)
+                    runner[x] = v if v < runner[x] else runner[x]
+            for x in range(m):
+                b = min(max(best[x], np.int32(1)), np.int32(n - 2))  # a winner at an end is rejected below
+                cm[x] = cost[b - 1, x]
+                cp[x] = cost[b + 1, x]
+            prow, okrow = prior[y, r:r + m], ok[y, r:r + m]
+            dout, vout, varout = drow[r:r + m], vrow[r:r + m], varrow[r:r + m]
+            ratio = flt[2] if uniq else _F(0.0)  # runner < 0 never holds: the check is off
+            for x in range(m):
+                p = prow[x]
+                xf = _F(x + r)
+                b = best[x]
+                keep = okrow[x] & np.isfinite(p) & (xf - p - _F(radius) >= _F(0.0)) & (xf - p + _F(radius) <= top)
+                keep = keep & (tsum[x] >= t_need) & (b > 0) & (b < n - 1) & (runner[x] >= ratio * c0[x])
+                curvature = cm[x] - _F(2.0) * c0[x] + cp[x]
+                denom = _F(2.0) * curvature if parabola else _F(2.0) * (max(cm[x], cp[x]) - c0[x])
+                offset = min(max((cm[x] - cp[x]) / max(denom, flt[1]), _F(-0.5)), _F(0.5))
+                q = (c0[x] + flt[0]) / (max(curvature, _F(0.0)) + flt[1])
+                var = min(_F(_QUANTISATION_VARIANCE) + _F(0.25) * (q * q), _F(INVALID_VARIANCE))
+                dout[x] = (p + _F(b - radius) + offset) if keep else _F(0.0)
+                vout[x] = keep
+                varout[x] = var if keep else _F(INVALID_VARIANCE)
+
+
+def match_residual(lp: torch.Tensor, rp: torch.Tensor, prior: torch.Tensor, ok: torch.Tensor, radius: int,
+                   block: int, parabola: bool, uniqueness: float, texture: float, threads: int | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The compiled residual search on prefiltered float32 CPU maps ``(B, 1, H, W)``; ``(disparity, valid,
+    variance)`` as :func:`egorefine.stereo.residual._match_residual_torch` returns them."""
+    b, _, h, w = lp.shape
+    threads = max(1, threads or torch.get_num_threads())
+    lpn, rpn = lp[:, 0].contiguous().numpy(), rp[:, 0].contiguous().numpy()
+    prn, okn = prior[:, 0].contiguous().numpy(), ok[:, 0].contiguous().numpy()
+    disparity = np.empty((b, h, w), np.float32)
+    valid = np.empty((b, h, w), np.bool_)
+    variance = np.empty((b, h, w), np.float32)
+    area = float(block * block)
+    eps = torch.finfo(torch.float32).eps * 16 * area
+    flt = np.array([1e-3 * area, eps, 1 + uniqueness], dtype=np.float32)
+    # the texture threshold on the window sum, as the torch path compares it (float32)
+    t_need = np.float32(np.float32(texture * area))
+    parts = max(1, min(threads * 2, h // _MIN_BAND_ROWS))
+    tasks = [(i, y0, y1) for i in range(b) for y0, y1 in _bands(h, parts)]
+
+    def task(t: tuple[int, int, int]) -> None:
+        i, y0, y1 = t
+        _band(lpn[i], rpn[i], prn[i], okn[i], y0, y1, radius, block // 2, parabola, uniqueness > 0, t_need, flt,
+              disparity[i], valid[i], variance[i])
+
+    Workers(threads).map(task, tasks)
+    return (torch.from_numpy(disparity).unsqueeze(1), torch.from_numpy(valid).unsqueeze(1),
+            torch.from_numpy(variance).unsqueeze(1))
