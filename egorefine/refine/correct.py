@@ -246,7 +246,7 @@ def correct_disparity(
         d, var, valid, cnt = _fuse_numba.kalman_fuse(
             e, s, _as_bool(measured_valid, e), _as_bool(predicted_valid, e), P, R, count, kalman_gate, reset_after,
             min_variance, max_unverified_variance)
-        return Correction(d, var, valid, cnt)
+        return Correction(d, var, valid, cnt if outlier_count is None else cnt.to(outlier_count.dtype))
     m_ok = _as_bool(measured_valid, e)
     p_ok = _as_bool(predicted_valid, e)
     P = torch.full_like(e, prior_variance) if predicted_variance is None else predicted_variance.to(e.dtype)

@@ -350,6 +350,22 @@ class EgoMotionRefiner(nn.Module):
             left, to_grey(right), self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
         )
 
+    def _correct(self, pred, meas, outlier_count: torch.Tensor, verification: bool):
+        """Step 4: fuse a measurement (full stereo, or the residual search) into the prediction by ``fusion``.
+
+        Kalman mode adds the prediction's depth-edge variance (``edge_aware``); ``max_unverified_variance`` applies
+        at verifications only (between them a prediction the residual search did not cover stays as it was)."""
+        kalman = self.fusion == "kalman"
+        pred_var = pred.variance
+        if kalman and self.edge_aware:
+            pred_var = pred_var + edge_variance(pred.disparity, pred.valid, self.edge_kernel)
+        return correct_disparity(
+            pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
+            predicted_variance=pred_var, measured_variance=meas.variance, predicted_valid=pred.valid,
+            outlier_count=outlier_count, kalman_gate=self.kalman_gate, reset_after=self.reset_after,
+            max_unverified_variance=self.max_unverified_variance if kalman and verification else None,
+        )
+
     # -- one frame ---------------------------------------------------------------------------------------------
     def forward(
         self,
@@ -440,25 +456,7 @@ class EgoMotionRefiner(nn.Module):
             why = "verification" if frame % self.verify_every == 0 else (
                 "the ego-motion failed" if not bool(ok.all()) else "adaptive: low coverage or confidence")
             meas = self._stereo(grey, right, frame, why)
-            pred_var = pred.variance
-            kalman = self.fusion == "kalman"
-            if kalman and self.edge_aware:
-                pred_var = pred_var + edge_variance(pred.disparity, pred.valid, self.edge_kernel)
-            cor = correct_disparity(
-                pred.disparity,
-                meas.disparity,
-                meas.valid,
-                fusion=self.fusion,
-                gate=self.gate,
-                gain=self.gain,
-                predicted_variance=pred_var,
-                measured_variance=meas.variance,
-                predicted_valid=pred.valid,
-                outlier_count=state.outlier_count,
-                kalman_gate=self.kalman_gate,
-                reset_after=self.reset_after,
-                max_unverified_variance=self.max_unverified_variance if kalman else None,
-            )
+            cor = self._correct(pred, meas, state.outlier_count, verification=True)
             # Where the motion failed the prediction is meaningless: restart that item from stereo.
             bad = (~ok)[:, None, None, None]
             disparity = torch.where(bad, meas.disparity, cor.disparity)
@@ -471,14 +469,7 @@ class EgoMotionRefiner(nn.Module):
             block = {"block_size": self.stereo_options["block_size"]} if "block_size" in self.stereo_options else {}
             meas = match_residual(grey, to_grey(right), pred.disparity, radius=self.local_search,
                                   prior_valid=pred.valid, **block)
-            pred_var = pred.variance
-            if self.fusion == "kalman" and self.edge_aware:
-                pred_var = pred_var + edge_variance(pred.disparity, pred.valid, self.edge_kernel)
-            cor = correct_disparity(
-                pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
-                predicted_variance=pred_var, measured_variance=meas.variance, predicted_valid=pred.valid,
-                outlier_count=state.outlier_count, kalman_gate=self.kalman_gate, reset_after=self.reset_after,
-            )
+            cor = self._correct(pred, meas, state.outlier_count, verification=False)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             confidence = _confidence(valid, variance)
         # 5. keep the tracks, top up when they thin out.

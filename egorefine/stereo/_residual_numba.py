@@ -32,7 +32,8 @@ if AVAILABLE:
         H, W = lp.shape
         n = 2 * radius + 1
         a0, a1 = max(y0 - r, 0), min(y1 + r, H)
-        diff = np.empty((n, a1 - a0, W), np.float32)
+        # planes 0..n-1: |L' - R'(warped)| per candidate; plane n: |L'|, whose window sum is the texture measure
+        diff = np.empty((n + 1, a1 - a0, W), np.float32)
         top = _F(W - 1)
         for y in range(a0, a1):
             lrow, rrow, prow, okrow = lp[y], rp[y], prior[y], ok[y]
@@ -42,6 +43,7 @@ if AVAILABLE:
                 fl = np.floor(base)
                 fr = base - fl
                 lv = lrow[x]
+                diff[n, y - a0, x] = abs(lv)
                 for j in range(n):
                     i = np.int64(fl) - (j - radius)
                     if i >= 0 and i <= W - 2:  # inside: floor and fraction are the band centre's, shifted
@@ -54,10 +56,9 @@ if AVAILABLE:
                         v0 = rrow[np.int64(x0)]
                         diff[j, y - a0, x] = abs(lv - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
         m = W - 2 * r  # window sums are kept for x in [r, W - r), at index x - r
-        cols = np.empty((n, W), np.float32)
-        cost = np.empty((n, m), np.float32)
-        tcol = np.empty(W, np.float32)
-        tsum = np.empty(m, np.float32)
+        cols = np.empty((n + 1, W), np.float32)
+        cost = np.empty((n + 1, m), np.float32)
+        tsum = cost[n]
         c0, runner = np.empty(m, np.float32), np.empty(m, np.float32)
         cm, cp = np.empty(m, np.float32), np.empty(m, np.float32)
         best = np.empty(m, np.int32)
@@ -69,7 +70,7 @@ if AVAILABLE:
                 varrow[x] = _F(INVALID_VARIANCE)
             if y < r or y >= H - r:
                 continue
-            for j in range(n):
+            for j in range(n + 1):  # window sums of every plane: column sums slid down, then row sums
                 col = cols[j]
                 if y == max(y0, r):  # the band's first row: the window's full column sums
                     first = diff[j, y - r - a0]
@@ -90,18 +91,6 @@ if AVAILABLE:
                     seg = col[u:u + m]
                     for x in range(m):
                         c[x] += seg[x]
-            for x in range(W):
-                tcol[x] = abs(lp[y - r, x])
-            for v in range(y - r + 1, y + r + 1):
-                lrow = lp[v]
-                for x in range(W):
-                    tcol[x] += abs(lrow[x])
-            for x in range(m):
-                tsum[x] = tcol[x]
-            for u in range(1, 2 * r + 1):
-                seg = tcol[u:u + m]
-                for x in range(m):
-                    tsum[x] += seg[x]
             # winner, runner-up and the winner's neighbours, as loops over the row (LLVM vectorises them)
             for x in range(m):
                 c0[x] = cost[0, x]
@@ -144,7 +133,8 @@ if AVAILABLE:
 
 
 def match_residual(lp: torch.Tensor, rp: torch.Tensor, prior: torch.Tensor, ok: torch.Tensor, radius: int,
-                   block: int, parabola: bool, uniqueness: float, texture: float, threads: int | None = None
+                   block: int, parabola: bool, uniqueness: float, texture: float, cost_floor: float,
+                   threads: int | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The compiled residual search on prefiltered float32 CPU maps ``(B, 1, H, W)``; ``(disparity, valid,
     variance)`` as :func:`egorefine.stereo.residual._match_residual_torch` returns them."""
@@ -157,7 +147,7 @@ def match_residual(lp: torch.Tensor, rp: torch.Tensor, prior: torch.Tensor, ok: 
     variance = np.empty((b, h, w), np.float32)
     area = float(block * block)
     eps = torch.finfo(torch.float32).eps * 16 * area
-    flt = np.array([1e-3 * area, eps, 1 + uniqueness], dtype=np.float32)
+    flt = np.array([cost_floor * area, eps, 1 + uniqueness], dtype=np.float32)
     # the texture threshold on the window sum, as the torch path compares it (float32)
     t_need = np.float32(np.float32(texture * area))
     parts = max(1, min(threads * 2, h // _MIN_BAND_ROWS))

@@ -44,6 +44,8 @@ SUBPIXEL_FITS = ("parabola", "equiangular")
 # 1 - ZNCC, mean Hamming distance).
 _SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (0.5, 3.0)}
 _TEMPERATURES = {"sad": 0.008, "zncc": 0.05, "census": 0.2}
+# cost floor of the variance model per cost (keeps a perfect match's variance finite), in that cost's units
+COST_FLOORS = {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}
 # the exact int16 path of the default SAD matcher (False: always the float path, for comparisons)
 _INTEGER_PATH = True
 # its compiled CPU form (False: the torch integer path, for comparisons; both give the same outputs)
@@ -298,7 +300,7 @@ def match_stereo(
         "subpixel": subpixel, "subpixel_fit": subpixel_fit, "lr_check": lr_check, "lr_threshold": lr_threshold,
         "uniqueness_ratio": uniqueness_ratio, "differentiable": differentiable, "soft_radius": soft_radius,
         "temperature": temperature if temperature is not None else _TEMPERATURES[cost],
-        "cost_floor": {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}[cost],
+        "cost_floor": COST_FLOORS[cost],
         "scale": float(block_size * block_size),
         "min_disparity": min_disparity,
     }

@@ -40,12 +40,11 @@ from ..core import (
 from . import _residual_numba
 from .cost import prefilter_xsobel
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE
-from .matching import StereoOutput
+from .matching import COST_FLOORS, StereoOutput
 
 __all__ = ["match_residual"]
 
-# the matcher's SAD cost floor (match_stereo's opts["cost_floor"]["sad"]) in the variance model
-_COST_FLOOR = 1e-3
+_COST_FLOOR = COST_FLOORS["sad"]  # the matcher's variance model, SAD cost
 # set False to run the torch path on CPU too (tests compare the two)
 _COMPILED = True
 
@@ -120,7 +119,7 @@ def match_residual(
     no_grad = not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad or prior.requires_grad))
     if (_COMPILED and _residual_numba.AVAILABLE and no_grad and left.device.type == "cpu"
             and left.dtype == torch.float32):
-        return StereoOutput(*_residual_numba.match_residual(lp, rp, prior, ok, *opts))
+        return StereoOutput(*_residual_numba.match_residual(lp, rp, prior, ok, *opts, cost_floor=_COST_FLOOR))
     ok = ok & torch.isfinite(prior)
     return _match_residual_torch(lp, rp, torch.where(ok, prior, torch.zeros_like(prior)), ok, *opts)
 
