@@ -68,3 +68,24 @@ def test_safe_div_is_finite_with_gradients():
     assert torch.isfinite(out).all() and torch.isfinite(den.grad).all()
     assert out[3] == -0.5
     assert eps_like(torch.zeros(1)) == 1e-6
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.complex64])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_check_finite_finds_any_non_finite_entry(dtype, bad):
+    x = torch.rand(3, 5, 7).to(dtype)
+    check_finite(x, "x")  # finite: passes
+    x[2, 4, 6] = bad  # the last entry
+    with pytest.raises(ValueRangeError, match="x: contains NaN or Inf"):
+        check_finite(x, "x")
+    x[2, 4, 6] = 0.5
+    x[0, 0, 0] = bad  # the first
+    with pytest.raises(ValueRangeError, match="x: contains NaN or Inf"):
+        check_finite(x, "x")
+
+
+def test_check_finite_passes_integers_empty_and_grad_tensors():
+    check_finite(torch.arange(5), "x")
+    check_finite(torch.ones(3, dtype=torch.bool), "x")
+    check_finite(torch.empty(0, 4), "x")
+    check_finite(torch.rand(4, requires_grad=True), "x")
