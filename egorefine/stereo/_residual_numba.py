@@ -35,26 +35,49 @@ if AVAILABLE:
         # planes 0..n-1: |L' - R'(warped)| per candidate; plane n: |L'|, whose window sum is the texture measure
         diff = np.empty((n + 1, a1 - a0, W), np.float32)
         top = _F(W - 1)
+        # per row: the band centre's floor and fraction (a compute-only loop), the n + 1 right-row samples every
+        # candidate interpolates between (a gather-only loop), then the n planes from them (vectorised); pixels
+        # whose band leaves the row take the torch path's clamped samples in a scalar fix-up loop
+        base = np.empty(W, np.float32)
+        frac = np.empty(W, np.float32)
+        first = np.empty(W, np.int64)
+        inside = np.empty(W, np.bool_)
+        near = np.empty((n + 1, W), np.float32)
         for y in range(a0, a1):
             lrow, rrow, prow, okrow = lp[y], rp[y], prior[y], ok[y]
+            ld = diff[n, y - a0]
             for x in range(W):
+                p = prow[x]
                 # as the torch path: the prior counts as 0 where it may not be used
-                base = _F(x) - (prow[x] if okrow[x] and np.isfinite(prow[x]) else _F(0.0))
-                fl = np.floor(base)
-                fr = base - fl
-                lv = lrow[x]
-                diff[n, y - a0, x] = abs(lv)
-                for j in range(n):
-                    i = np.int64(fl) - (j - radius)
-                    if i >= 0 and i <= W - 2:  # inside: floor and fraction are the band centre's, shifted
-                        v0 = rrow[i]
-                        diff[j, y - a0, x] = abs(lv - (v0 + fr * (rrow[i + 1] - v0)))
-                    else:  # the torch path's clamp to [0, W - 1]
-                        sc = min(max(base - _F(j - radius), _F(0.0)), top)
-                        x0 = min(np.floor(sc), _F(W - 2))
-                        f = sc - x0
-                        v0 = rrow[np.int64(x0)]
-                        diff[j, y - a0, x] = abs(lv - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
+                b = _F(x) - (p if okrow[x] and np.isfinite(p) else _F(0.0))
+                fl = np.floor(b)
+                base[x] = b
+                frac[x] = b - fl
+                # candidate j samples rrow[fl + radius - j] and the next one (fl clamped first: a huge prior must
+                # not overflow the integer conversion; such pixels take the fix-up loop)
+                lo = np.int64(min(max(fl, _F(-2 * W)), _F(2 * W))) - radius
+                inside[x] = (lo >= 0) & (lo + 2 * radius <= W - 2)
+                first[x] = min(max(lo, np.int64(0)), np.int64(W - 2 - 2 * radius))
+                ld[x] = abs(lrow[x])
+            for k in range(n + 1):
+                nk = near[k]
+                for x in range(W):
+                    nk[x] = rrow[first[x] + k]
+            for j in range(n):
+                dj = diff[j, y - a0]
+                v0s, v1s = near[2 * radius - j], near[2 * radius - j + 1]
+                for x in range(W):
+                    v0 = v0s[x]
+                    dj[x] = abs(lrow[x] - (v0 + frac[x] * (v1s[x] - v0)))
+            for x in range(W):
+                if inside[x]:
+                    continue
+                for j in range(n):  # the torch path's clamp to [0, W - 1]
+                    sc = min(max(base[x] - _F(j - radius), _F(0.0)), top)
+                    x0 = min(np.floor(sc), _F(W - 2))
+                    f = sc - x0
+                    v0 = rrow[np.int64(x0)]
+                    diff[j, y - a0, x] = abs(lrow[x] - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
         m = W - 2 * r  # window sums are kept for x in [r, W - r), at index x - r
         cols = np.empty((n + 1, W), np.float32)
         cost = np.empty((n + 1, m), np.float32)
