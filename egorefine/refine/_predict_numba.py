@@ -336,7 +336,7 @@ if AVAILABLE:
     def _edge_variance(d, valid, radius, y0, y1, out):
         """Rows ``y0:y1`` of :func:`egorefine.refine.correct.edge_variance` for one batch item: ``(r / 2)^2`` with
         ``r`` the spread of the valid disparities in the window (clipped at the borders), 0 where invalid. Window
-        maxima and minima separably, rows then columns, in loops without gathers (SIMD)."""
+        maxima and minima separably, rows then columns, each as a few passes over shifted slices (SIMD)."""
         H, W = d.shape
         lo_row, hi_row = max(0, y0 - radius), min(H, y1 + radius)
         n = hi_row - lo_row
@@ -346,25 +346,37 @@ if AVAILABLE:
         v_min = np.empty(W, np.float32)
         for j in range(n):
             y = lo_row + j
+            drow, vrow = d[y], valid[y]
             for x in range(W):
-                ok = valid[y, x]
-                v_max[x] = d[y, x] if ok else -_BIG
-                v_min[x] = d[y, x] if ok else _BIG
+                ok = vrow[x]
+                v_max[x] = drow[x] if ok else -_BIG
+                v_min[x] = drow[x] if ok else _BIG
+            a, b = row_max[j], row_min[j]
             for x in range(W):
-                a, b = v_max[x], v_min[x]
-                for k in range(max(0, x - radius), min(W, x + radius + 1)):
-                    a = max(a, v_max[k])
-                    b = min(b, v_min[k])
-                row_max[j, x] = a
-                row_min[j, x] = b
+                a[x] = v_max[x]
+                b[x] = v_min[x]
+            for s in range(1, min(radius, W - 1) + 1):  # the neighbours s columns right, then s columns left
+                a_l, m_r, b_l, n_r = a[: W - s], v_max[s:], b[: W - s], v_min[s:]
+                for x in range(W - s):
+                    a_l[x] = max(a_l[x], m_r[x])
+                    b_l[x] = min(b_l[x], n_r[x])
+                a_r, m_l, b_r, n_l = a[s:], v_max[: W - s], b[s:], v_min[: W - s]
+                for x in range(W - s):
+                    a_r[x] = max(a_r[x], m_l[x])
+                    b_r[x] = min(b_r[x], n_l[x])
         for y in range(y0, y1):
             for x in range(W):
-                a, b = row_max[y - lo_row, x], row_min[y - lo_row, x]
-                for k in range(max(0, y - radius), min(H, y + radius + 1)):
-                    a = max(a, row_max[k - lo_row, x])
-                    b = min(b, row_min[k - lo_row, x])
-                spread = max(a - b, _F(0.0)) if valid[y, x] else _F(0.0)
-                out[y, x] = spread * spread * _F(0.25)
+                v_max[x] = row_max[y - lo_row, x]
+                v_min[x] = row_min[y - lo_row, x]
+            for k in range(max(0, y - radius), min(H, y + radius + 1)):
+                m_k, n_k = row_max[k - lo_row], row_min[k - lo_row]
+                for x in range(W):
+                    v_max[x] = max(v_max[x], m_k[x])
+                    v_min[x] = min(v_min[x], n_k[x])
+            vrow, orow = valid[y], out[y]
+            for x in range(W):
+                spread = max(v_max[x] - v_min[x], _F(0.0)) if vrow[x] else _F(0.0)
+                orow[x] = spread * spread * _F(0.25)
 
 
 _workspace_store = threading.local()
