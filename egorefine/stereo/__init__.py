@@ -4,6 +4,7 @@ winner-takes-all with sub-pixel fit or soft-argmin, and left-right / uniqueness 
 from ._sgm_numba import release_workspace as release_sgm_workspace
 from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
 from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, match_stereo
+from .regions import mask_boxes, match_stereo_regions
 from .residual import match_residual
 from .sgm import sgm_aggregate
 
@@ -11,6 +12,8 @@ __all__ = [
     "block_matching",
     "match_stereo",
     "match_residual",
+    "match_stereo_regions",
+    "mask_boxes",
     "BlockMatching",
     "StereoOutput",
     "cost_volume",

@@ -29,7 +29,7 @@ from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from .fast import _INVALID, _QUANTISATION_VARIANCE, INVALID_VARIANCE, _quantise
 
-__all__ = ["AVAILABLE", "match_sad_compiled"]
+__all__ = ["AVAILABLE", "match_sad_compiled", "match_sad_windows"]
 
 # rows per task: enough that a band's start-up (the window's first 2r + 1 rows) is small beside it,
 # few enough that two threads stay busy to the end
@@ -56,7 +56,7 @@ if AVAILABLE:
 
     @_jit
     def _band(lp, rp, y0, y1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d_pos, subpixel, parabola,
-              disparity, valid, variance):
+              disparity, valid, variance, x0=0):
         """Match output rows ``[y0, y1)`` of one image pair.
 
         ``lp`` ``(H + 2r, W + 2r)`` and ``rp`` ``(H + 2r, W + 2r + max_d)`` are the quantised prefiltered images,
@@ -64,7 +64,9 @@ if AVAILABLE:
         ``(y, x)`` covers padded rows ``y .. y + 2r`` and left columns ``u = x .. x + 2r``, and candidate ``j``
         (disparity ``max_d - 1 - j``) reads right column ``u + 1 + j``. ``flt`` holds the float32 constants
         ``(unit, area * cost_floor, eps, 1 + uniqueness_ratio)``; ``uniq`` enables the uniqueness check,
-        ``guard`` is the left-right tolerance (-1: no left-right check).
+        ``guard`` is the left-right tolerance (-1: no left-right check). ``x0`` is the image column of output
+        column 0 when the arrays are a window of columns (:func:`match_sad_windows`): candidates with
+        ``x0 + x < d`` are out of the right view, and the left-right check sees the window's columns only.
         """
         wp = lp.shape[1]
         w = wp - 2 * r
@@ -111,7 +113,7 @@ if AVAILABLE:
             for j in range(num):
                 out = cost[j]
                 _window_sums(col[j], pairs, r, out)
-                for x in range(min(max_d - 1 - j, w)):
+                for x in range(min(max(max_d - 1 - j - x0, 0), w)):
                     out[x] = big
                 jj = np.int16(j)
                 for x in range(w):
@@ -190,23 +192,12 @@ def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_
         ``(disparity, valid, variance)`` each ``(B, 1, H, W)`` (0 and ``INVALID_VARIANCE`` where invalid).
     """
     b, _, h, w = left.shape
-    r = block // 2
-    num = max_d - min_d
+    r, num = block // 2, max_d - min_d
     threads = max(1, threads or torch.get_num_threads())
-    lq = _quantise(left.detach(), cap, scale, (r, r, r, r))[1][:, 0].numpy()
-    rq = _quantise(right.detach(), cap, scale, (r + max_d, r, r, r))[1][:, 0].numpy()
+    lq, rq, (guard, uniq, t_need, c_level, flt) = _setup(left, right, max_d, min_d, block, cap, scale, opts)
     disparity = np.empty((b, h, w), np.float32)
     valid = np.empty((b, h, w), np.bool_)
     variance = np.empty((b, h, w), np.float32)
-    area = float(block * block)
-    uniq = opts["uniqueness_ratio"] > 0
-    flt = np.array([1.0 / (255.0 * scale), opts["cost_floor"] * area, torch.finfo(torch.float32).eps * 16 * area,
-                    1 + opts["uniqueness_ratio"]], dtype=np.float32)
-    guard = min(opts["lr_threshold"], num - 1) if opts["lr_check"] else -1
-    # the texture threshold on the window sum, rounded to float32 as the float path compares it, then up
-    t_need = float(np.float32(opts["texture_threshold"] * area * 255.0 * scale))
-    t_need = int(min(max(np.ceil(t_need), -_INVALID), _INVALID))
-    c_level = np.int16(round(255.0 * scale * cap))
     parts = max(1, min(threads * 2, h // _MIN_BAND_ROWS))
     tasks = [(i, y0, y1) for i in range(b) for y0, y1 in _bands(h, parts)]
 
@@ -216,5 +207,68 @@ def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_
               bool(opts["subpixel"]), opts["subpixel_fit"] == "parabola", disparity[i], valid[i], variance[i])
 
     Workers(threads).map(task, tasks)
+    return (torch.from_numpy(disparity).unsqueeze(1), torch.from_numpy(valid).unsqueeze(1),
+            torch.from_numpy(variance).unsqueeze(1))
+
+
+def _setup(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float, scale: int,
+           opts: dict) -> tuple:
+    """Padded quantised images ``lq``, ``rq`` (see :func:`_band`) and the kernel's settings
+    ``(guard, uniq, t_need, c_level, flt)``."""
+    r = block // 2
+    num = max_d - min_d
+    lq = _quantise(left.detach(), cap, scale, (r, r, r, r))[1][:, 0].numpy()
+    rq = _quantise(right.detach(), cap, scale, (r + max_d, r, r, r))[1][:, 0].numpy()
+    area = float(block * block)
+    uniq = opts["uniqueness_ratio"] > 0
+    flt = np.array([1.0 / (255.0 * scale), opts["cost_floor"] * area, torch.finfo(torch.float32).eps * 16 * area,
+                    1 + opts["uniqueness_ratio"]], dtype=np.float32)
+    guard = min(opts["lr_threshold"], num - 1) if opts["lr_check"] else -1
+    # the texture threshold on the window sum, rounded to float32 as the float path compares it, then up
+    t_need = float(np.float32(opts["texture_threshold"] * area * 255.0 * scale))
+    t_need = int(min(max(np.ceil(t_need), -_INVALID), _INVALID))
+    c_level = np.int16(round(255.0 * scale * cap))
+    return lq, rq, (guard, uniq, t_need, c_level, flt)
+
+
+def match_sad_windows(left: torch.Tensor, right: torch.Tensor, boxes: list[list[tuple[int, int, int, int]]],
+                      margin: int, max_d: int, min_d: int, block: int, cap: float, scale: int, opts: dict,
+                      threads: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`match_sad_compiled` on windows of columns only: for each item ``i`` and box ``(y0, y1, x0, x1)`` in
+    ``boxes[i]``, the rows ``y0:y1`` of columns ``x0 - margin : x1 + margin`` (clipped) are matched with the whole
+    search range, and the box is kept. Costs, winners and every check but the left-right one equal the full
+    frame's; the left-right check sees the window's columns. Outside the boxes the output is invalid.
+
+    Returns:
+        ``(disparity, valid, variance)`` each ``(B, 1, H, W)``.
+    """
+    b, _, h, w = left.shape
+    r, num = block // 2, max_d - min_d
+    threads = max(1, threads or torch.get_num_threads())
+    lq, rq, (guard, uniq, t_need, c_level, flt) = _setup(left, right, max_d, min_d, block, cap, scale, opts)
+    disparity = np.zeros((b, h, w), np.float32)
+    valid = np.zeros((b, h, w), np.bool_)
+    variance = np.full((b, h, w), INVALID_VARIANCE, np.float32)
+    windows, tasks = [], []
+    for i, item_boxes in enumerate(boxes):
+        for y0, y1, x0, x1 in item_boxes:
+            wx0, wx1 = max(0, x0 - margin), min(w, x1 + margin)
+            # contiguous copies of the window (padded rows y0 .. y1 + 2r): the kernel's loops vectorise on them
+            lw = np.ascontiguousarray(lq[i, y0:y1 + 2 * r, wx0:wx1 + 2 * r])
+            rw = np.ascontiguousarray(rq[i, y0:y1 + 2 * r, wx0:wx1 + 2 * r + max_d])
+            out = tuple(np.empty((y1 - y0, wx1 - wx0), dt) for dt in (np.float32, np.bool_, np.float32))
+            windows.append((i, y0, y1, x0, x1, wx0, out))
+            parts = max(1, min(threads * 2, (y1 - y0) // _MIN_BAND_ROWS))
+            tasks += [(lw, rw, a0, a1, wx0, out) for a0, a1 in _bands(y1 - y0, parts)]
+
+    def task(t: tuple) -> None:
+        lw, rw, a0, a1, wx0, out = t
+        _band(lw, rw, a0, a1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d > 0, bool(opts["subpixel"]),
+              opts["subpixel_fit"] == "parabola", *out, wx0)
+
+    Workers(threads).map(task, tasks)
+    for i, y0, y1, x0, x1, wx0, out in windows:  # the boxes, without their margins
+        for full, part in zip((disparity, valid, variance), out, strict=True):
+            full[i, y0:y1, x0:x1] = part[:, x0 - wx0:x1 - wx0]
     return (torch.from_numpy(disparity).unsqueeze(1), torch.from_numpy(valid).unsqueeze(1),
             torch.from_numpy(variance).unsqueeze(1))
