@@ -58,10 +58,12 @@ def test_prediction_on_cuda_matches_cpu(seq):
     assert err.median() < 0.05
 
 
-def test_refiner_on_cuda_tracks_truth_like_cpu(seq):
+# the second set runs the residual search (torch path on the GPU) and the hole measurement (the whole frame there)
+@pytest.mark.parametrize("extra", [{}, {"local_search": 2, "measure_holes": True}])
+def test_refiner_on_cuda_tracks_truth_like_cpu(seq, extra):
     runs = {}
     for device in ("cpu", "cuda"):
-        refiner = EgoMotionRefiner(verify_every=3, fusion="kalman", **SMALL)
+        refiner = EgoMotionRefiner(verify_every=3, fusion="kalman", **SMALL, **extra)
         K, b = seq.K[None].to(device), torch.tensor([seq.baseline], device=device)
         state, outs = None, []
         for t in range(len(seq.left)):
