@@ -54,7 +54,7 @@ def mask_boxes(
     mask: torch.Tensor,
     tile: int = 16,
     min_fraction: float = 0.1,
-    margin: int = 16,
+    margin: int = 32,
     extra_rows: int = 8,
     per_box: int = 4096,
 ) -> list[Box]:
@@ -110,9 +110,9 @@ def _matcher_settings(options: dict) -> dict:
     return {**settings, **options}
 
 
-def _compiled(left: torch.Tensor, max_disparity: int, s: dict) -> bool:
+def _compiled(left: torch.Tensor, right: torch.Tensor, max_disparity: int, s: dict) -> bool:
     """Whether :func:`match_stereo` would take the compiled SAD path for these images and settings."""
-    needs_grad = torch.is_grad_enabled() and left.requires_grad
+    needs_grad = torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)
     return (_sad_numba.AVAILABLE and matching._COMPILED_SAD and matching._INTEGER_PATH and s["cost"] == "sad"
             and s["aggregation"] == "box" and s["prefilter"] and not s["differentiable"] and not needs_grad
             and left.device.type == "cpu" and left.dtype == torch.float32
@@ -180,7 +180,7 @@ def match_stereo_regions(
             inside[b, :, y0:y1, x0:x1] = True
     if not any(boxes):
         return StereoOutput(torch.zeros_like(grey_l), inside, torch.full_like(grey_l, INVALID_VARIANCE))
-    if _compiled(grey_l, max_disparity, settings):
+    if _compiled(grey_l, grey_r, max_disparity, settings):
         # an item whose windows would cost more than full_fraction of the frame is matched whole
         work = [int(_costs(np.array(item, dtype=np.int64).reshape(-1, 4), W, int(margin), extra, 0).sum())
                 for item in boxes]

@@ -135,3 +135,12 @@ def test_bad_input_is_named(scene):
         match_stereo_regions(left, right, mask, MAX_D, min_fraction=0.0)
     with pytest.raises(ValueRangeError, match="max_disparity"):
         match_stereo_regions(left, right, mask, 1000)
+
+
+def test_gradients_flow_through_the_whole_frame_path(scene):
+    left, right, _ = scene
+    mask = _mask(2, *left.shape[-2:])
+    right = right.clone().requires_grad_(True)  # only the right image needs a gradient: not the compiled path
+    out = match_stereo_regions(left, right, mask, MAX_D)
+    out.disparity.sum().backward()
+    assert right.grad is not None and torch.isfinite(right.grad).all() and right.grad.abs().sum() > 0
