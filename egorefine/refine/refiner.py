@@ -493,7 +493,7 @@ class EgoMotionRefiner(nn.Module):
             confidence = _confidence(valid, variance)
         if self.measure_holes and not stereo_ran and right is not None:
             # 4''. the holes the keyframe could not fill (disocclusions, regions entering the view): the matcher on
-            # crops around them; a value enters where its variance is at most max_hole_variance.
+            # windows around them; a value enters where its variance is at most max_hole_variance.
             hole = ~valid
             meas = match_stereo_regions(grey, to_grey(right), hole, self.max_disparity, min_fraction=_HOLE_SHARE,
                                         min_disparity=self.min_disparity, **self.stereo_options)

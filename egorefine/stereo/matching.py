@@ -227,6 +227,20 @@ def _sgm_outputs(volume: torch.Tensor, *, p1: float, p2: float, paths: int) -> t
     return (sgm_aggregate(volume, p1, p2, paths),)
 
 
+def _integer_scale(cost: str, aggregation: str, prefilter: bool, block_size: int, prefilter_cap: float,
+                   needs_grad: bool, num: int) -> int:
+    """The quantisation scale of the exact int16 SAD path (:mod:`egorefine.stereo.fast`) where it applies, else 0."""
+    if not (_INTEGER_PATH and cost == "sad" and prefilter and aggregation == "box" and not needs_grad
+            and num <= 1 << 14):
+        return 0
+    return int_scale(block_size, prefilter_cap)
+
+
+def _compiled_sad(grey: torch.Tensor) -> bool:
+    """The int16 SAD path runs compiled (:mod:`egorefine.stereo._sad_numba`) for these images."""
+    return _COMPILED_SAD and _sad_numba.AVAILABLE and grey.device.type == "cpu" and grey.dtype == torch.float32
+
+
 def _use_numba_sgm(grey: torch.Tensor, cost: str, num: int, needs_grad: bool) -> bool:
     """The compiled census + SGM path applies: numba present, float32 CPU tensors, no gradient, >= 2 candidates."""
     return (_sgm_numba.AVAILABLE and cost == "census" and not needs_grad and grey.device.type == "cpu"
@@ -304,13 +318,12 @@ def match_stereo(
         "scale": float(block_size * block_size),
         "min_disparity": min_disparity,
     }
-    scale = int_scale(block_size, prefilter_cap) if cost == "sad" and prefilter else 0
     needs_grad = torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)
-    if _INTEGER_PATH and aggregation == "box" and scale > 0 and not (differentiable or needs_grad) and num <= 1 << 14:
+    scale = _integer_scale(cost, aggregation, prefilter, block_size, prefilter_cap, differentiable or needs_grad, num)
+    if scale:
         # exact int16 fast path (the decisions of the float path below, without its float rounding;
         # a right-view tie within lr_threshold of the left winner passes the left-right check)
-        if (_COMPILED_SAD and _sad_numba.AVAILABLE and grey_l.device.type == "cpu"
-                and grey_l.dtype == torch.float32):
+        if _compiled_sad(grey_l):
             return StereoOutput(*_sad_numba.match_sad_compiled(grey_l, grey_r, max_disparity, min_disparity,
                                                                block_size, prefilter_cap, scale,
                                                                {**opts, "texture_threshold": texture_threshold}))

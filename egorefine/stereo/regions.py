@@ -34,7 +34,6 @@ from torch.nn import functional as F
 
 from ..core import ValueRangeError, check_shape, to_grey
 from . import _sad_numba, matching
-from .fast import int_scale
 from .matching import COST_FLOORS, INVALID_VARIANCE, StereoOutput, match_stereo
 
 __all__ = ["mask_boxes", "match_stereo_regions"]
@@ -110,15 +109,6 @@ def _matcher_settings(options: dict) -> dict:
     return {**settings, **options}
 
 
-def _compiled(left: torch.Tensor, right: torch.Tensor, max_disparity: int, s: dict) -> bool:
-    """Whether :func:`match_stereo` would take the compiled SAD path for these images and settings."""
-    needs_grad = torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)
-    return (_sad_numba.AVAILABLE and matching._COMPILED_SAD and matching._INTEGER_PATH and s["cost"] == "sad"
-            and s["aggregation"] == "box" and s["prefilter"] and not s["differentiable"] and not needs_grad
-            and left.device.type == "cpu" and left.dtype == torch.float32
-            and max_disparity - s["min_disparity"] <= 1 << 14)
-
-
 def match_stereo_regions(
     left: torch.Tensor,
     right: torch.Tensor,
@@ -180,7 +170,11 @@ def match_stereo_regions(
             inside[b, :, y0:y1, x0:x1] = True
     if not any(boxes):
         return StereoOutput(torch.zeros_like(grey_l), inside, torch.full_like(grey_l, INVALID_VARIANCE))
-    if _compiled(grey_l, grey_r, max_disparity, settings):
+    needs_grad = torch.is_grad_enabled() and (grey_l.requires_grad or grey_r.requires_grad)
+    scale = matching._integer_scale(settings["cost"], settings["aggregation"], settings["prefilter"],
+                                    settings["block_size"], settings["prefilter_cap"],
+                                    settings["differentiable"] or needs_grad, max_disparity - settings["min_disparity"])
+    if scale and matching._compiled_sad(grey_l):  # match_stereo would run the compiled SAD kernel: on windows here
         # an item whose windows would cost more than full_fraction of the frame is matched whole
         work = [int(_costs(np.array(item, dtype=np.int64).reshape(-1, 4), W, int(margin), extra, 0).sum())
                 for item in boxes]
@@ -191,7 +185,7 @@ def match_stereo_regions(
         opts["cost_floor"] = COST_FLOORS["sad"]
         out = StereoOutput(*_sad_numba.match_sad_windows(
             grey_l, grey_r, windows, int(margin), max_disparity, settings["min_disparity"], settings["block_size"],
-            settings["prefilter_cap"], int_scale(settings["block_size"], settings["prefilter_cap"]), opts))
+            settings["prefilter_cap"], scale, opts))
     else:
         out = match_stereo(grey_l, grey_r, max_disparity, **options)
     return StereoOutput(out.disparity * inside, out.valid & inside,
