@@ -38,10 +38,10 @@ from ..core import (
 from ..features import build_pyramid, replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
-from ..stereo import match_residual, match_stereo, match_stereo_regions
+from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_regions
 from .correct import correct_disparity, edge_variance
 from .cracks import close_cracks
-from .predict import predict_disparity
+from .predict import Prediction, predict_disparity
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
 
@@ -49,9 +49,12 @@ __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult"
 _TRACK_LEVELS = 3
 
 
-# measure_holes: a 16 px tile is matched where at least half of it is holes (compact disocclusions, regions entering
-# the view); 0.1 also caught the scattered holes of a near road: 0.3 to 0.5 % more density for 1.2 to 3.7 times the
-# cost (refine benchmark sequences, 31 frames)
+# measure_holes: a 6 px tile is matched where at least half of it is holes. Compact disocclusions and regions
+# entering the view fill such tiles; so do the strips a few pixels wide that a depth edge uncovers, which 16 px tiles
+# missed (density +0.2 to +0.5 % on the refine benchmark's sequences, 31 frames, at no measurable cost; 4 px tiles
+# added 0.1 to 0.2 % more for 5 to 10 % more time on the KITTI-like rig). A share of 0.1 (16 px tiles) also caught
+# the scattered holes of a near road: 0.3 to 0.5 % more density for 1.2 to 3.7 times the cost.
+_HOLE_TILE = 6
 _HOLE_SHARE = 0.5
 
 
@@ -122,6 +125,24 @@ class RefinerOutput(NamedTuple):
 def _confidence(valid: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
     """``1 / (1 + variance)`` on valid pixels, 0 elsewhere: the same meaning on every frame (as in predict)."""
     return valid.to(variance.dtype) / (1.0 + variance)
+
+
+def _hole_measurements(
+    hole: torch.Tensor, meas: StereoOutput, pred: Prediction, max_variance: float, background_margin: float | None
+) -> torch.Tensor:
+    """Which stereo measurements of the loop's holes are taken: ``(B, 1, H, W)`` bool.
+
+    A valid measurement of a ``hole`` pixel is taken where its variance is at most ``max_variance``, or, with a
+    ``background_margin``, where the pixel is one of the splat's holes (``pred.hole``, whose ``pred.disparity`` is
+    the background fill of :func:`~egorefine.refine.fill_holes_background`) and the measurement lies at most
+    ``background_margin`` px above that fill. A hole the motion uncovers shows the background, and the matcher's
+    usual error there is the foreground's disparity spilling over the edge: a value on the background's side
+    of the fill is plausible even where the cost curve is flat.
+    """
+    take = meas.variance <= max_variance
+    if background_margin is not None:
+        take = take | (pred.hole & (meas.disparity <= pred.disparity + background_margin))
+    return hole & meas.valid & take
 
 
 def _sample(map_: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -208,11 +229,14 @@ class EgoMotionRefiner(nn.Module):
             surface (a disparity error scales with the square of the magnification), which prediction alone
             carries on. Hole-filled pixels are not searched: on the benchmark scenes their background fill made
             poor priors (EPE 0.064 to 0.083 px on the corridor sequence when they were).
-        measure_holes, max_hole_variance: on frames without stereo, the pixels still without a value (disocclusions,
-            regions entering the view) are measured by the matcher on the regions where they are dense
-            (:func:`~egorefine.stereo.match_stereo_regions`, tiles at least half holes) and take its value where its
-            variance is at most ``max_hole_variance`` px^2. Off by default: on the refine benchmark's four sequences
-            (with ``local_search=2``, verify every 5) it raised density from 0.975 / 0.983 / 0.976 / 0.945 to
+        measure_holes, max_hole_variance, hole_background_margin: on frames without stereo, the pixels still without
+            a value (disocclusions, regions entering the view) are measured by the matcher on the regions where they
+            are dense (:func:`~egorefine.stereo.match_stereo_regions`, 6 px tiles at least half holes). A value is taken
+            where its variance is at most ``max_hole_variance`` px^2, or where it lies at most
+            ``hole_background_margin`` px above the hole's background fill (None: variance only). An uncovered region
+            shows the background, and the matcher's usual error there reads the foreground's disparity: values on the
+            background side are plausible even where the cost curve is flat. Off by default: on the refine
+            benchmark's four sequences (with ``local_search=2``, verify every 5) it raised density from 0.975 / 0.983 / 0.976 / 0.945 to
             0.981 / 0.991 / 0.982 / 0.976 with bad-0.5 unchanged, for 5 to 12 ms per frame (a quarter to half of a full
             stereo run). Frames given without a right image skip it.
 
@@ -257,6 +281,7 @@ class EgoMotionRefiner(nn.Module):
         local_search: int = 0,
         measure_holes: bool = False,
         max_hole_variance: float = 0.2,
+        hole_background_margin: float | None = 0.5,
     ) -> None:
         super().__init__()
         check_choice(fusion, ("paper", "kalman"), "fusion")
@@ -284,6 +309,8 @@ class EgoMotionRefiner(nn.Module):
             raise ValueRangeError(f"local_search: expected 0 (off) or an integer >= 2, got {local_search}")
         if not float(max_hole_variance) > 0:
             raise ValueRangeError(f"max_hole_variance: expected > 0, got {max_hole_variance}")
+        if hole_background_margin is not None and not float(hole_background_margin) >= 0:
+            raise ValueRangeError(f"hole_background_margin: expected >= 0 or None, got {hole_background_margin}")
         if int(max_disparity) <= int(min_disparity):
             raise ValueRangeError(f"max_disparity: must exceed min_disparity={min_disparity}, got {max_disparity}")
         self.max_disparity = int(max_disparity)
@@ -309,6 +336,7 @@ class EgoMotionRefiner(nn.Module):
         self.local_search = int(local_search)
         self.measure_holes = bool(measure_holes)
         self.max_hole_variance = float(max_hole_variance)
+        self.hole_background_margin = None if hole_background_margin is None else float(hole_background_margin)
         # Only the matcher options the caller set are passed on: the matcher's own defaults apply otherwise.
         self.stereo_options = {
             k: v
@@ -493,11 +521,12 @@ class EgoMotionRefiner(nn.Module):
             confidence = _confidence(valid, variance)
         if self.measure_holes and not stereo_ran and right is not None:
             # 4''. the holes the keyframe could not fill (disocclusions, regions entering the view): the matcher on
-            # windows around them; a value enters where its variance is at most max_hole_variance.
+            # windows around them; a value enters where it is precise or on the background side of the hole's fill.
             hole = ~valid
-            meas = match_stereo_regions(grey, to_grey(right), hole, self.max_disparity, min_fraction=_HOLE_SHARE,
+            meas = match_stereo_regions(grey, to_grey(right), hole, self.max_disparity, tile=_HOLE_TILE,
+                                        min_fraction=_HOLE_SHARE,
                                         min_disparity=self.min_disparity, **self.stereo_options)
-            take = hole & meas.valid & (meas.variance <= self.max_hole_variance)
+            take = _hole_measurements(hole, meas, pred, self.max_hole_variance, self.hole_background_margin)
             disparity = torch.where(take, meas.disparity, disparity)
             variance = torch.where(take, meas.variance, variance)
             outliers = torch.where(take, torch.zeros_like(outliers), outliers)
