@@ -51,9 +51,10 @@ _TRACK_LEVELS = 3
 
 # measure_holes: a 6 px tile is matched where at least half of it is holes. Compact disocclusions and regions
 # entering the view fill such tiles; so do the strips a few pixels wide that a depth edge uncovers, which 16 px tiles
-# missed (density +0.2 to +0.5 % on the refine benchmark's sequences, 31 frames, at no measurable cost; 4 px tiles
-# added 0.1 to 0.2 % more for 5 to 10 % more time on the KITTI-like rig). A share of 0.1 (16 px tiles) also caught
-# the scattered holes of a near road: 0.3 to 0.5 % more density for 1.2 to 3.7 times the cost.
+# missed (with the background rule: density +0.35 to +0.56 % over 16 px tiles on the refine benchmark's sequences,
+# 31 frames, at no measurable cost; 4 px tiles added 0.07 to 0.18 % more for 4 to 15 % more time on the KITTI-like
+# rig). A share of 0.1 (16 px tiles) also caught the scattered holes of a near road: 0.3 to 0.5 % more density for
+# 1.2 to 3.7 times the cost.
 _HOLE_TILE = 6
 _HOLE_SHARE = 0.5
 
