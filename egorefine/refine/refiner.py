@@ -397,7 +397,7 @@ class EgoMotionRefiner(nn.Module):
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
         return match_stereo(
-            left, to_grey(right), self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
+            left, right, self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
         )
 
     def _correct(self, pred, meas, outlier_count: torch.Tensor, verification: bool):
@@ -439,6 +439,7 @@ class EgoMotionRefiner(nn.Module):
         """
         self._check_inputs(left, right, K, baseline, state)
         grey = to_grey(left)
+        right = None if right is None else to_grey(right)  # once: stereo, local search and holes all match grey
         B = grey.shape[0]
         eye = torch.eye(4, device=grey.device, dtype=grey.dtype).expand(B, 4, 4)
         if state is None:
@@ -517,7 +518,7 @@ class EgoMotionRefiner(nn.Module):
         elif self.local_search and right is not None:
             # 4'. no stereo on this frame: a narrow residual search around the prediction corrects it.
             block = {"block_size": self.stereo_options["block_size"]} if "block_size" in self.stereo_options else {}
-            meas = match_residual(grey, to_grey(right), pred.disparity, radius=self.local_search,
+            meas = match_residual(grey, right, pred.disparity, radius=self.local_search,
                                   prior_valid=pred.valid, **block)
             cor = self._correct(pred, meas, state.outlier_count, verification=False)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
@@ -526,7 +527,7 @@ class EgoMotionRefiner(nn.Module):
             # 4''. the holes the keyframe could not fill (disocclusions, regions entering the view): the matcher on
             # windows around them; a value enters where it is precise or on the background side of the hole's fill.
             hole = ~valid
-            meas = match_stereo_regions(grey, to_grey(right), hole, self.max_disparity, tile=_HOLE_TILE,
+            meas = match_stereo_regions(grey, right, hole, self.max_disparity, tile=_HOLE_TILE,
                                         min_fraction=_HOLE_SHARE,
                                         min_disparity=self.min_disparity, **self.stereo_options)
             take = _hole_measurements(hole, meas, pred, self.max_hole_variance, self.hole_background_margin)

@@ -164,12 +164,9 @@ def match_stereo_regions(
     # Item by item (the boxes depend on the data): an item's output does not depend on its neighbours.
     extra = settings["block_size"] - 1
     boxes = [mask_boxes(mask[b, 0].bool(), tile, min_fraction, int(margin), extra) for b in range(B)]
-    inside = torch.zeros(B, 1, H, W, dtype=torch.bool, device=left.device)
-    for b, item in enumerate(boxes):
-        for y0, y1, x0, x1 in item:
-            inside[b, :, y0:y1, x0:x1] = True
     if not any(boxes):
-        return StereoOutput(torch.zeros_like(grey_l), inside, torch.full_like(grey_l, INVALID_VARIANCE))
+        return StereoOutput(torch.zeros_like(grey_l), torch.zeros_like(grey_l, dtype=torch.bool),
+                            torch.full_like(grey_l, INVALID_VARIANCE))
     needs_grad = torch.is_grad_enabled() and (grey_l.requires_grad or grey_r.requires_grad)
     scale = matching._integer_scale(settings["cost"], settings["aggregation"], settings["prefilter"],
                                     settings["block_size"], settings["prefilter_cap"],
@@ -186,7 +183,13 @@ def match_stereo_regions(
         out = StereoOutput(*_sad_numba.match_sad_windows(
             grey_l, grey_r, windows, int(margin), max_disparity, settings["min_disparity"], settings["block_size"],
             settings["prefilter_cap"], scale, opts))
+        if windows == boxes:  # every item matched on its boxes: the kernel wrote nothing outside them
+            return out
     else:
         out = match_stereo(grey_l, grey_r, max_disparity, **options)
+    inside = torch.zeros(B, 1, H, W, dtype=torch.bool, device=left.device)
+    for b, item in enumerate(boxes):
+        for y0, y1, x0, x1 in item:
+            inside[b, :, y0:y1, x0:x1] = True
     return StereoOutput(out.disparity * inside, out.valid & inside,
                         torch.where(inside, out.variance, torch.full_like(out.variance, INVALID_VARIANCE)))
