@@ -63,6 +63,7 @@ from ..core import (
     eps_like,
     to_grey,
 )
+from . import _track_numba
 
 __all__ = ["track", "Tracker", "TrackOutput", "build_pyramid"]
 
@@ -725,6 +726,13 @@ def track(
     if count == 0:  # no features (or an empty batch): nothing to match
         zeros = torch.zeros_like(weights)
         return TrackOutput(keypoints.clone(), weights * zeros, zeros, zeros.clone())
+    if _compiled_applies(pyr_prev + pyr_next, (prev, next, keypoints, weights, start), cost, soft):
+        # the same steps compiled (egorefine.features._track_numba): float32 CPU inference
+        return TrackOutput(*_track_numba.track_compiled(
+            pyr_prev, pyr_next, keypoints, weights, start, count, patch_size, search_radius, refine_radius, fb_check,
+            fb_threshold, min_score, min_texture, lk_iters, None if predicted is None else predicted_radius,
+            fb_predicted, levels if fb_levels is None else min(fb_levels, levels),
+        ))
     settings = dict(
         patch_size=patch_size,
         search_radius=search_radius,
@@ -759,6 +767,25 @@ def track(
         _put(weights * zeros, idx, sub.weights),
         _put(zeros, idx, sub.score * sub_live),
         _put(zeros, idx, sub.fb_error * sub_live),
+    )
+
+
+# the compiled CPU form of the hard ZNCC track (False: always the torch path, for comparisons)
+_COMPILED = True
+
+
+def _compiled_applies(
+    pyramids: list[torch.Tensor], tensors: tuple[torch.Tensor, ...], cost: str, soft: bool
+) -> bool:
+    """The compiled track applies: numba present, hard ZNCC, float32 CPU tensors, no gradient wanted."""
+    every = [*pyramids, *tensors]
+    return (
+        _COMPILED
+        and _track_numba.AVAILABLE
+        and not soft
+        and cost == "zncc"
+        and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in every)
+        and not (torch.is_grad_enabled() and any(t.requires_grad for t in every))
     )
 
 

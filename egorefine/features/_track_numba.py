@@ -1,0 +1,544 @@
+"""CPU inference path of :func:`egorefine.features.track` (hard ZNCC matching), compiled with numba.
+
+The torch path matches all features at once, but each level of its search is a dozen small
+operator launches on ``(B, N, ...)`` tensors (two index gathers, two grouped convolutions, an
+arg-min, a gathered parabola) and a frame runs five or so such levels plus the Lucas-Kanade
+polish and the forward-backward match: about 5-6 ms per frame of a few hundred features, nearly
+all of it launch overhead. Every feature's work depends only on its own patches, so here one
+compiled loop over the live features does its whole track: the search around the prediction, the
+coarse-to-fine search where that misses, the polish, the texture/score/inside tests and the round
+trip, with the same steps and settings as :func:`egorefine.features.tracking._track_live`.
+
+Agreement with the torch path: the positions (cut windows, rounding, parabola, the polish's
+bicubic samples and steps) repeat its float32 formulas in its order; the window sums (ZNCC terms,
+means, the polish's normal equations) are added in float64 rather than in the convolutions' float32
+order, so costs agree to float32 rounding and positions to a few float32 ulps. A decision (the
+integer arg-min, a threshold test) can differ only where two costs or a value and its threshold
+lie within that rounding of each other. Features are split across :class:`egorefine.core._jit.Workers`
+threads; each one's result does not depend on the thread count.
+
+``AVAILABLE`` is False when numba cannot be imported; :func:`egorefine.features.track` then takes
+its torch path, which stays the reference for GPU tensors, autograd, ``soft=True`` and the SSD/SAD costs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..core._jit import AVAILABLE, Workers
+from ..core._jit import jit as _jit
+
+__all__ = ["AVAILABLE", "track_compiled"]
+
+_F = np.float32
+# Features per thread below which one thread does all (a thread hand-off costs more than ~50 tracks).
+_MIN_PER_THREAD = 48
+# tracking._SLOT_STEP: the torch path pads feature subsets to multiples of this many slots
+_SLOT_STEP = 32
+
+
+if AVAILABLE:
+
+    @_jit(inline="always")
+    def _clamp(v, lo, hi):
+        return min(max(v, lo), hi)
+
+    @_jit(inline="always")
+    def _parabola(cm, minus, plus, eps):
+        """tracking._parabola in float32: vertex through (-1, minus), (0, cm), (1, plus), clamped to 0.5 px."""
+        curv = max(minus - _F(2.0) * cm + plus, eps)
+        return min(max(_F(0.5) * (minus - plus) / curv, _F(-0.5)), _F(0.5))
+
+    @_jit(inline="always")
+    def _cut(img, x0, y0, rows, cols, out):
+        """``out[:rows, :cols]`` = the float64 pixels of ``img`` from ``(x0, y0)`` on, border repeated
+        (tracking._extract_patches); returns their sum."""
+        H, W = img.shape
+        s = 0.0
+        inside = x0 >= 0 and y0 >= 0 and x0 + cols <= W and y0 + rows <= H
+        for i in range(rows):
+            row = img[_clamp(y0 + i, 0, H - 1)]
+            o = out[i]
+            if inside:
+                seg = row[x0:x0 + cols]
+                for j in range(cols):
+                    v = np.float64(seg[j])
+                    o[j] = v
+                    s += v
+            else:
+                for j in range(cols):
+                    v = np.float64(row[_clamp(x0 + j, 0, W - 1)])
+                    o[j] = v
+                    s += v
+        return s
+
+    @_jit
+    def _box_sums(dst, cx, cy, h):
+        """Sums of ``dst`` and of its square over the ``2 h + 1`` box around the pixel ``(cx, cy)`` clamped into
+        the image, border repeated (tracking._box_maps read at a clamped centre)."""
+        H, W = dst.shape
+        cx = _clamp(cx, 0, W - 1)
+        cy = _clamp(cy, 0, H - 1)
+        s1 = s2 = 0.0
+        for i in range(-h, h + 1):
+            row = dst[_clamp(cy + i, 0, H - 1)]
+            for j in range(-h, h + 1):
+                v = np.float64(row[_clamp(cx + j, 0, W - 1)])
+                s1 += v
+                s2 += v * v
+        return s1, s2
+
+    @_jit
+    def _match_level(src, dst, px, py, ex, ey, p, radius, box, eps32, eps, tb, wb, cb, acc):
+        """tracking._match_level (hard, ZNCC) for one feature: ``(px, py)`` in ``src``, estimate ``(ex, ey)`` in
+        ``dst``, both float32 px of this level. Returns ``(x, y, best cost, on edge)``.
+
+        ``box``: the torch path takes this level's window sums from box maps (tracking._box_maps, read at the
+        window centre clamped into the image, then combined in float32): the costs repeat that.
+        Scratch: ``tb (>= p, >= p)``, ``wb (>= S, >= S + 8)`` float64 (finite) with ``S = p + 2 radius``,
+        ``cb (>= k * k)`` float32 and ``acc (3, >= S, >= k)`` float64, ``k = 2 radius + 1``.
+        """
+        H, W = dst.shape
+        h = (p - 1) // 2
+        pix = _F(np.rint(px))
+        piy = _F(np.rint(py))
+        fx = px - pix
+        fy = py - piy
+        cx = _F(np.rint(ex - fx))
+        cy = _F(np.rint(ey - fy))
+        # template at the rounded point (border repeated), zero mean
+        area = p * p
+        tm = _cut(src, np.int64(pix) - h, np.int64(piy) - h, p, p, tb) / area
+        tsq = 0.0
+        for i in range(p):
+            for j in range(p):
+                t = tb[i, j] - tm
+                tb[i, j] = t
+                tsq += t * t
+        # window around the rounded estimate (border repeated)
+        S = p + 2 * radius
+        k = 2 * radius + 1
+        icx, icy = np.int64(cx), np.int64(cy)
+        _cut(dst, icx - h - radius, icy - h - radius, S, S, wb)
+        # ZNCC of every shift (tracking._cost_map): -sum((w - mean w) t0) / sqrt(sum (w - mean w)^2 sum t0^2).
+        # Window sums: running sums along each row, then down the columns.
+        hs, hq, vs, vq = acc[0], acc[1], acc[2, 0], acc[2, 1]
+        for a in range(S):
+            row = wb[a]
+            s1 = s2 = 0.0
+            for j in range(p):
+                v = row[j]
+                s1 += v
+                s2 += v * v
+            hs[a, 0] = s1
+            hq[a, 0] = s2
+            for dx in range(1, k):
+                vo, vi = row[dx - 1], row[dx + p - 1]
+                s1 += vi - vo
+                s2 += vi * vi - vo * vo
+                hs[a, dx] = s1
+                hq[a, dx] = s2
+        for dx in range(k):
+            s1 = s2 = 0.0
+            for i in range(p):
+                s1 += hs[i, dx]
+                s2 += hq[i, dx]
+            vs[dx] = s1
+            vq[dx] = s2
+        m32 = _F(tm)
+        tsq32 = _F(tsq)
+        for dy in range(k):
+            wy = icy + dy - radius
+            # correlations sum t0 w, eight shifts at a time (a fixed width: SIMD; wb has 8 spare columns)
+            for x8 in range(0, k, 8):
+                c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = 0.0
+                for i in range(p):
+                    w = wb[dy + i, x8:]
+                    t = tb[i]
+                    for j in range(p):
+                        tv = t[j]
+                        c0 += tv * w[j]
+                        c1 += tv * w[j + 1]
+                        c2 += tv * w[j + 2]
+                        c3 += tv * w[j + 3]
+                        c4 += tv * w[j + 4]
+                        c5 += tv * w[j + 5]
+                        c6 += tv * w[j + 6]
+                        c7 += tv * w[j + 7]
+                cs = (c0, c1, c2, c3, c4, c5, c6, c7)
+                for d in range(8):
+                    dx = x8 + d
+                    if dx >= k:
+                        break
+                    corr = cs[d]
+                    if not box:
+                        var = max(vq[dx] - vs[dx] * vs[dx] / area, 0.0)
+                        cb[dy * k + dx] = _F(-corr / np.sqrt(max(var * tsq, eps)))
+                        continue
+                    wx = icx + dx - radius
+                    r1, r2 = vs[dx], vq[dx]
+                    if wx < 0 or wx > W - 1 or wy < 0 or wy > H - 1:
+                        r1, r2 = _box_sums(dst, wx, wy, h)
+                    # torch's float32 steps from the raw box sums: sum (w - m), sum (w - m)^2, the variance
+                    rs, rq = _F(r1), _F(r2)
+                    w_sum = rs - _F(area) * m32
+                    w_sq = rq - _F(2.0) * m32 * rs + _F(area) * m32 * m32
+                    w_var = max(w_sq + _F(-1.0 / area) * w_sum * w_sum, _F(0.0))
+                    rsq = _F(1.0 / np.sqrt(np.float64(max(w_var * tsq32, eps32))))
+                    cb[dy * k + dx] = -_F(corr) * rsq
+            if dy + 1 < k:
+                for dx in range(k):
+                    vs[dx] += hs[dy + p, dx] - hs[dy, dx]
+                    vq[dx] += hq[dy + p, dx] - hq[dy, dx]
+        # first minimum (torch's min), then the parabola on each axis not on the edge
+        bi = 0
+        bv = cb[0]
+        for q in range(1, k * k):
+            if cb[q] < bv:
+                bv = cb[q]
+                bi = q
+        ix = bi % k
+        iy = bi // k
+        edge_x = ix == 0 or ix == k - 1
+        edge_y = iy == 0 or iy == k - 1
+        subx = _F(0.0) if edge_x else _parabola(bv, cb[bi - 1], cb[bi + 1], eps32)
+        suby = _F(0.0) if edge_y else _parabola(bv, cb[bi - k], cb[bi + k], eps32)
+        half = _F((k - 1) // 2)
+        return ((cx + fx) + ((_F(ix) - half) + subx), (cy + fy) + ((_F(iy) - half) + suby), bv, edge_x or edge_y)
+
+    @_jit
+    def _to_level0(src, dst, b, levels, px, py, sx, sy, p, search, refine, box, eps32, eps, tb, wb, cb, acc):
+        """tracking._match_to_level0 for item ``b`` of the pyramids (tuples of ``(B, H_l, W_l)``): the coarse levels
+        ``levels - 1 .. 1``, then level 0. ``box``: bit ``l`` set where level ``l`` uses box sums.
+
+        Returns level 0's ``(x, y, best cost, on edge)``.
+        """
+        ex, ey = sx, sy
+        for level in range(levels - 1, 0, -1):
+            scale = _F(2.0**level)
+            radius = search if level == levels - 1 else refine
+            ex, ey, _, _ = _match_level(src[level][b], dst[level][b], px / scale, py / scale, ex / scale, ey / scale,
+                                        p, radius, (box >> level) & 1 == 1, eps32, eps, tb, wb, cb, acc)
+            ex, ey = ex * scale, ey * scale
+        radius0 = search if levels == 1 else refine
+        return _match_level(src[0][b], dst[0][b], px, py, ex, ey, p, radius0, box & 1 == 1, eps32, eps, tb, wb, cb,
+                            acc)
+
+    @_jit(inline="always")
+    def _cubic(t):
+        """torch's bicubic weights (A = -0.75) for the fraction ``t`` in float32, in grid_sample's order."""
+        A = _F(-0.75)
+        x = t + _F(1.0)
+        c0 = ((A * x - _F(5.0) * A) * x + _F(8.0) * A) * x - _F(4.0) * A
+        c1 = ((A + _F(2.0)) * t - (A + _F(3.0))) * t * t + _F(1.0)
+        x = _F(1.0) - t
+        c2 = ((A + _F(2.0)) * x - (A + _F(3.0))) * x * x + _F(1.0)
+        x = _F(2.0) - t
+        c3 = ((A * x - _F(5.0) * A) * x + _F(8.0) * A) * x - _F(4.0) * A
+        return c0, c1, c2, c3
+
+    @_jit
+    def _sample(img, posx, posy, p, out, hv, taps, wxs):
+        """tracking._sample_patches (bicubic, border, align_corners) of ``img`` around ``(posx, posy)`` into
+        ``out (p, p)`` float64, with grid_sample's float32 steps: the coordinates' normalisation round trip, the
+        weights, each sample's four row interpolations and then the column one. A sample's row interpolation
+        depends only on its column and the image row, so each is computed once (scratch: ``hv (>= p + 5, p)``
+        and ``wxs (p, 4)`` float32, ``taps (p, 4)`` int64)."""
+        H, W = img.shape
+        scx = _F(2.0 / max(W - 1, 1))
+        scy = _F(2.0 / max(H - 1, 1))
+        sfx = _F(W - 1) / _F(2.0)
+        sfy = _F(H - 1) / _F(2.0)
+        maxx, maxy = _F(W - 1), _F(H - 1)
+        h = (p - 1) // 2
+        # the columns' taps and weights
+        for j in range(p):
+            x = ((posx + _F(j - h)) * scx - _F(1.0) + _F(1.0)) * sfx
+            ix = np.floor(x)
+            wxs[j, 0], wxs[j, 1], wxs[j, 2], wxs[j, 3] = _cubic(x - ix)
+            for t in range(4):
+                taps[j, t] = np.int64(_clamp(ix + _F(t - 1), _F(0.0), maxx))
+        # the image rows the samples reach (row positions increase with i), each interpolated along x once
+        y_first = ((posy + _F(-h)) * scy - _F(1.0) + _F(1.0)) * sfy
+        y_last = ((posy + _F(p - 1 - h)) * scy - _F(1.0) + _F(1.0)) * sfy
+        r0 = np.int64(_clamp(np.floor(y_first) - _F(1.0), _F(0.0), maxy))
+        r1 = np.int64(_clamp(np.floor(y_last) + _F(2.0), _F(0.0), maxy))
+        for r in range(r0, r1 + 1):
+            row = img[r]
+            hrow = hv[r - r0]
+            for j in range(p):
+                tp = taps[j]
+                wx = wxs[j]
+                hrow[j] = wx[0] * row[tp[0]] + wx[1] * row[tp[1]] + wx[2] * row[tp[2]] + wx[3] * row[tp[3]]
+        for i in range(p):
+            y = ((posy + _F(i - h)) * scy - _F(1.0) + _F(1.0)) * sfy
+            iy = np.floor(y)
+            wy0, wy1, wy2, wy3 = _cubic(y - iy)
+            a0 = np.int64(_clamp(iy - _F(1.0), _F(0.0), maxy)) - r0
+            a1 = np.int64(_clamp(iy, _F(0.0), maxy)) - r0
+            a2 = np.int64(_clamp(iy + _F(1.0), _F(0.0), maxy)) - r0
+            a3 = np.int64(_clamp(iy + _F(2.0), _F(0.0), maxy)) - r0
+            h0, h1, h2, h3 = hv[a0], hv[a1], hv[a2], hv[a3]
+            o = out[i]
+            for j in range(p):
+                o[j] = np.float64(wy0 * h0[j] + wy1 * h1[j] + wy2 * h2[j] + wy3 * h3[j])
+
+    @_jit
+    def _lk(src, dst, px, py, ex, ey, p, iters, eps32, eps, eb, tb, gxb, gyb, ib, hv, taps, wxs):
+        """tracking._lk_refine (ZNCC) for one level-0 feature: the polished ``(x, y)``.
+
+        Scratch: ``eb (p + 2, p + 2)``, ``tb``, ``gxb``, ``gyb``, ``ib (p, p)``, all float64, and :func:`_sample`'s.
+        """
+        pix = _F(np.rint(px))
+        piy = _F(np.rint(py))
+        fx = px - pix
+        fy = py - piy
+        h = (p + 1) // 2
+        _cut(src, np.int64(pix) - h, np.int64(piy) - h, p + 2, p + 2, eb)
+        area = p * p
+        st = sgx = sgy = 0.0
+        for i in range(p):
+            for j in range(p):
+                tb[i, j] = eb[i + 1, j + 1]
+                gxb[i, j] = 0.5 * (eb[i + 1, j + 2] - eb[i + 1, j])
+                gyb[i, j] = 0.5 * (eb[i + 2, j + 1] - eb[i, j + 1])
+                st += tb[i, j]
+                sgx += gxb[i, j]
+                sgy += gyb[i, j]
+        # zero-mean template and gradients (gain/bias invariance of ZNCC), then the 2x2 normal matrix
+        tm, gxm, gym = st / area, sgx / area, sgy / area
+        tq = sxx = syy = sxy = 0.0
+        for i in range(p):
+            for j in range(p):
+                t = tb[i, j] - tm
+                tb[i, j] = t
+                tq += t * t
+                gx = gxb[i, j] - gxm
+                gy = gyb[i, j] - gym
+                gxb[i, j] = gx
+                gyb[i, j] = gy
+                sxx += gx * gx
+                syy += gy * gy
+                sxy += gx * gy
+        t_std = np.sqrt(max(tq / area, eps))
+        reg = 1e-3 * (sxx + syy) + eps
+        det = max((sxx + reg) * (syy + reg) - sxy * sxy, eps)
+        bx0 = ex - fx
+        by0 = ey - fy
+        posx, posy = bx0, by0
+        for _ in range(iters):
+            _sample(dst, posx, posy, p, ib, hv, taps, wxs)
+            si = 0.0
+            for i in range(p):
+                for j in range(p):
+                    si += ib[i, j]
+            im = si / area
+            iq = 0.0
+            for i in range(p):
+                for j in range(p):
+                    v = ib[i, j] - im
+                    ib[i, j] = v
+                    iq += v * v
+            gain = t_std / np.sqrt(max(iq / area, eps))
+            bx = by = 0.0
+            for i in range(p):
+                for j in range(p):
+                    r = tb[i, j] - ib[i, j] * gain
+                    bx += gxb[i, j] * r
+                    by += gyb[i, j] * r
+            stx = _clamp(_F(((syy + reg) * bx - sxy * by) / det), _F(-0.5), _F(0.5))
+            sty = _clamp(_F(((sxx + reg) * by - sxy * bx) / det), _F(-0.5), _F(0.5))
+            posx = bx0 + _clamp(posx + stx - bx0, _F(-1.0), _F(1.0))
+            posy = by0 + _clamp(posy + sty - by0, _F(-1.0), _F(1.0))
+        return posx + fx, posy + fy
+
+    @_jit
+    def _spread(src, px, py, p, tb):
+        """Sum of squared deviations of the template at the rounded point (tracking._track_live's texture test)."""
+        h = (p - 1) // 2
+        m = _cut(src, np.int64(_F(np.rint(px))) - h, np.int64(_F(np.rint(py))) - h, p, p, tb) / (p * p)
+        q = 0.0
+        for i in range(p):
+            for j in range(p):
+                d = tb[i, j] - m
+                q += d * d
+        return q
+
+    @_jit
+    def _search(src, dst, levels, points, start, p, search, refine, box, eps32, out_pos, out_best, out_edge, order):
+        """tracking._match_to_level0 of the features ``order`` (flat ``b * N + n`` indices): ``points (B, N, 2)`` of
+        ``src`` (level-0 px) matched into ``dst`` from ``start`` over ``levels`` levels; writes their level-0
+        positions, best costs and on-edge flags."""
+        N = points.shape[1]
+        radius = max(search, refine)
+        tb = np.empty((p, p))
+        wb = np.zeros((p + 2 * radius, p + 2 * radius + 8))
+        cb = np.empty((2 * radius + 1) ** 2, np.float32)
+        acc = np.empty((3, p + 2 * radius, 2 * radius + 1))
+        eps = np.float64(eps32)
+        for f in order:
+            b, n = f // N, f % N
+            x, y, best, edge = _to_level0(src, dst, b, levels, points[b, n, 0], points[b, n, 1], start[b, n, 0],
+                                          start[b, n, 1], p, search, refine, box, eps32, eps, tb, wb, cb, acc)
+            out_pos[b, n, 0] = x
+            out_pos[b, n, 1] = y
+            out_best[b, n] = best
+            out_edge[b, n] = edge
+
+    @_jit
+    def _polish(src, dst, points, p, iters, eps32, pos, spread, order):
+        """tracking._lk_refine of the features ``order`` (positions ``pos`` updated in place, level 0) and their
+        template's sum of squared deviations (the texture test)."""
+        N = points.shape[1]
+        eb = np.empty((p + 2, p + 2))
+        tb = np.empty((p + 2, p + 2))
+        gxb = np.empty((p, p))
+        gyb = np.empty((p, p))
+        ib = np.empty((p, p))
+        hv = np.empty((2 * p + 8, p), np.float32)
+        taps = np.empty((p, 4), np.int64)
+        wxs = np.empty((p, 4), np.float32)
+        eps = np.float64(eps32)
+        for f in order:
+            b, n = f // N, f % N
+            px, py = points[b, n, 0], points[b, n, 1]
+            if iters > 0:
+                pos[b, n, 0], pos[b, n, 1] = _lk(src[b], dst[b], px, py, pos[b, n, 0], pos[b, n, 1], p, iters, eps32,
+                                                 eps, eb, tb, gxb, gyb, ib, hv, taps, wxs)
+            spread[b, n] = _F(_spread(src[b], px, py, p, tb))
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def _padded(count: int, n: int) -> int:
+    """The slot count the torch path matches ``count`` features of ``n`` slots in (tracking._first_true)."""
+    return min(n, -(-count // _SLOT_STEP) * _SLOT_STEP)
+
+
+def _box_bits(n: int, pyramid: tuple[np.ndarray, ...], radii: list[int], patch_size: int) -> int:
+    """Bit ``l`` set where the torch path's level-``l`` match of ``n`` features with ``radii[l]`` uses box sums."""
+    bits = 0
+    for level, radius in enumerate(radii):
+        h, w = pyramid[level].shape[-2:]
+        if n * (2 * radius + 1) ** 2 > 2 * h * w:
+            bits |= 1 << level
+    return bits
+
+
+def _radii(levels: int, search: int, refine: int) -> list[int]:
+    """Per-level radii of tracking._match_to_level0 over ``levels`` levels (level 0 first)."""
+    return [search if level == levels - 1 else refine for level in range(levels)]
+
+
+class _Runner:
+    """Runs a kernel over a feature list on the worker threads (strided shares: costly features are spread)."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = threads
+
+    def __call__(self, kernel, order: torch.Tensor, *args) -> None:
+        idx = order.numpy()
+        parts = max(1, min(self.threads, math.ceil(len(idx) / _MIN_PER_THREAD)))
+        shares = [np.ascontiguousarray(idx[i::parts]) for i in range(parts)]
+        Workers(parts).map(lambda share: kernel(*args, share), shares)
+
+
+def track_compiled(
+    pyr_prev: list[torch.Tensor],
+    pyr_next: list[torch.Tensor],
+    keypoints: torch.Tensor,
+    weights: torch.Tensor,
+    start: torch.Tensor,
+    count: int,
+    patch_size: int,
+    search_radius: int,
+    refine_radius: int,
+    fb_check: bool,
+    fb_threshold: float,
+    min_score: float | None,
+    min_texture: float,
+    lk_iters: int,
+    predicted_radius: int | None,
+    fb_predicted: bool,
+    fb_levels: int,
+    threads: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`egorefine.features.tracking._track_live` (hard, ZNCC) on float32 CPU pyramids for every live slot.
+
+    ``keypoints`` / ``start`` ``(B, N, 2)`` and ``weights`` ``(B, N)`` float32, ``count`` the largest number of
+    live slots in a row; ``predicted_radius`` None for no search around ``start`` first; ``fb_levels`` the way
+    back's levels (<= the pyramids'). Returns the :class:`egorefine.features.TrackOutput` fields as
+    :func:`egorefine.features.track` returns them (empty slots unchanged, weight / score / fb_error 0 there).
+    """
+    levels = len(pyr_prev)
+    prev = tuple(_np(p[:, 0]) for p in pyr_prev)
+    nxt = tuple(_np(p[:, 0]) for p in pyr_next)
+    kp = keypoints.detach().contiguous()
+    st = start.detach().contiguous()
+    kpn, stn = kp.numpy(), st.numpy()
+    b, n = weights.shape
+    live = weights > 0
+    eps32 = np.float32(1e-6)
+    run = _Runner(max(1, threads or torch.get_num_threads()))
+    # The torch path matches the live features in (B, M) subsets whose size decides, per level, whether the
+    # window sums come from box maps (tracking._match_level): the sizes are repeated here for that choice.
+    slots = n if count > n - _SLOT_STEP else _padded(count, n)
+    pos = kp.clone()
+    best = torch.zeros_like(weights)
+    edge = torch.zeros(b, n, dtype=torch.bool)
+    outs = (pos.numpy(), best.numpy(), edge.numpy())
+    pred_r = 0 if predicted_radius is None or levels == 1 else int(predicted_radius)
+    full_radii = _radii(levels, search_radius, refine_radius)
+    found = torch.zeros_like(live)
+    if pred_r:
+        # level 0 around the prediction, then the full search for the live features it missed
+        run(_search, live.view(-1).nonzero().view(-1), prev, nxt, 1, kpn, stn, patch_size, pred_r, pred_r,
+            _box_bits(slots, prev, [pred_r], patch_size), eps32, *outs)
+        miss = edge.clone()
+        if min_score is not None:
+            miss |= -best < min_score
+        retry = live & miss
+        found = live & ~miss
+        retries = int(retry.sum(dim=1).max())
+        if retries:
+            run(_search, retry.view(-1).nonzero().view(-1), prev, nxt, levels, kpn, stn, patch_size, search_radius,
+                refine_radius, _box_bits(_padded(retries, slots), prev, full_radii, patch_size), eps32, *outs)
+    else:
+        run(_search, live.view(-1).nonzero().view(-1), prev, nxt, levels, kpn, stn, patch_size, search_radius,
+            refine_radius, _box_bits(slots, prev, full_radii, patch_size), eps32, *outs)
+    spread = torch.zeros_like(weights)
+    run(_polish, live.view(-1).nonzero().view(-1), prev[0], nxt[0], kpn, patch_size, lk_iters, eps32, pos.numpy(),
+        spread.numpy())
+    score = -best
+    # tracking._track_live's tests, as there
+    h, w = pyr_prev[0].shape[-2:]
+    ok = live & ~edge & (spread >= min_texture**2 * (patch_size * patch_size - 1))
+    if min_score is not None:
+        ok &= score >= min_score
+    x, y = pos[..., 0], pos[..., 1]
+    ok &= (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & torch.isfinite(pos).all(dim=-1)
+    fb_error = torch.zeros_like(weights)
+    if fb_check:
+        back_ok = torch.ones_like(ok)
+        ways = [(ok & ~found, fb_levels, search_radius, _radii(fb_levels, search_radius, refine_radius))]
+        if fb_predicted:
+            ways.append((ok & found, 1, refine_radius, [refine_radius]))
+        for check, lv, radius, radii in ways:
+            todo = slots if slots <= _SLOT_STEP else int(check.sum(dim=1).max())
+            if todo == 0:
+                continue
+            size = slots if todo > slots - _SLOT_STEP else _padded(todo, slots)
+            back = torch.zeros_like(kp)
+            back_edge = torch.zeros_like(edge)
+            run(_search, check.view(-1).nonzero().view(-1), nxt, prev, lv, pos.numpy(), kpn, patch_size, radius,
+                refine_radius, _box_bits(size, nxt, radii, patch_size), eps32, back.numpy(), best.clone().numpy(),
+                back_edge.numpy())
+            fb_error = torch.where(check, (back - kp).norm(dim=-1), fb_error)
+            back_ok &= ~(back_edge & check)
+        ok &= back_ok & (fb_error <= fb_threshold)
+    return (torch.where(live.unsqueeze(-1), pos, kp), weights * ok.to(weights.dtype), score * live, fb_error)
