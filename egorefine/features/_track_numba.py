@@ -28,7 +28,7 @@ import math
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, numba
 from ..core._jit import jit as _jit
 
 __all__ = ["AVAILABLE", "track_compiled"]
@@ -41,6 +41,45 @@ _SLOT_STEP = 32
 
 
 if AVAILABLE:
+
+    def _jit_reassoc(fn):
+        """:func:`egorefine.core._jit.jit` with reassociation and fused multiply-adds allowed: only for the float64
+        window correlations, whose order of additions does not follow the torch path's anyway."""
+        flags = {"reassoc", "contract"}
+        try:
+            return numba.njit(cache=True, nogil=True, fastmath=flags)(fn)
+        except RuntimeError:  # no cache locator: compile only
+            return numba.njit(cache=False, nogil=True, fastmath=flags)(fn)
+
+    @_jit_reassoc
+    def _correlate(tb, wb, p, k, cc):
+        """``cc[dy * k + dx] = sum_ij tb[i, j] wb[dy + i, dx + j]`` for ``dy, dx < k``, eight shifts at a time (a
+        fixed width: SIMD); ``wb`` has 8 spare columns, ``cc`` 8 spare entries."""
+        for dy in range(k):
+            for x8 in range(0, k, 8):
+                c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = 0.0
+                for i in range(p):
+                    w = wb[dy + i, x8:]
+                    t = tb[i]
+                    for j in range(p):
+                        tv = t[j]
+                        c0 += tv * w[j]
+                        c1 += tv * w[j + 1]
+                        c2 += tv * w[j + 2]
+                        c3 += tv * w[j + 3]
+                        c4 += tv * w[j + 4]
+                        c5 += tv * w[j + 5]
+                        c6 += tv * w[j + 6]
+                        c7 += tv * w[j + 7]
+                o = dy * k + x8
+                cc[o] = c0
+                cc[o + 1] = c1
+                cc[o + 2] = c2
+                cc[o + 3] = c3
+                cc[o + 4] = c4
+                cc[o + 5] = c5
+                cc[o + 6] = c6
+                cc[o + 7] = c7
 
     @_jit(inline="always")
     def _clamp(v, lo, hi):
@@ -92,14 +131,14 @@ if AVAILABLE:
         return s1, s2
 
     @_jit
-    def _match_level(src, dst, px, py, ex, ey, p, radius, box, eps32, eps, tb, wb, cb, acc):
+    def _match_level(src, dst, px, py, ex, ey, p, radius, box, eps32, eps, tb, wb, cb, cc, acc):
         """tracking._match_level (hard, ZNCC) for one feature: ``(px, py)`` in ``src``, estimate ``(ex, ey)`` in
         ``dst``, both float32 px of this level. Returns ``(x, y, best cost, on edge)``.
 
         ``box``: the torch path takes this level's window sums from box maps (tracking._box_maps, read at the
         window centre clamped into the image, then combined in float32): the costs repeat that.
         Scratch: ``tb (>= p, >= p)``, ``wb (>= S, >= S + 8)`` float64 (finite) with ``S = p + 2 radius``,
-        ``cb (>= k * k)`` float32 and ``acc (3, >= S, >= k)`` float64, ``k = 2 radius + 1``.
+        ``cb (>= k * k)`` float32, ``cc (>= k * k + 8)`` and ``acc (3, >= S, >= k)`` float64, ``k = 2 radius + 1``.
         """
         H, W = dst.shape
         h = (p - 1) // 2
@@ -150,45 +189,27 @@ if AVAILABLE:
             vq[dx] = s2
         m32 = _F(tm)
         tsq32 = _F(tsq)
+        _correlate(tb, wb, p, k, cc)
         for dy in range(k):
             wy = icy + dy - radius
-            # correlations sum t0 w, eight shifts at a time (a fixed width: SIMD; wb has 8 spare columns)
-            for x8 in range(0, k, 8):
-                c0 = c1 = c2 = c3 = c4 = c5 = c6 = c7 = 0.0
-                for i in range(p):
-                    w = wb[dy + i, x8:]
-                    t = tb[i]
-                    for j in range(p):
-                        tv = t[j]
-                        c0 += tv * w[j]
-                        c1 += tv * w[j + 1]
-                        c2 += tv * w[j + 2]
-                        c3 += tv * w[j + 3]
-                        c4 += tv * w[j + 4]
-                        c5 += tv * w[j + 5]
-                        c6 += tv * w[j + 6]
-                        c7 += tv * w[j + 7]
-                cs = (c0, c1, c2, c3, c4, c5, c6, c7)
-                for d in range(8):
-                    dx = x8 + d
-                    if dx >= k:
-                        break
-                    corr = cs[d]
-                    if not box:
-                        var = max(vq[dx] - vs[dx] * vs[dx] / area, 0.0)
-                        cb[dy * k + dx] = _F(-corr / np.sqrt(max(var * tsq, eps)))
-                        continue
-                    wx = icx + dx - radius
-                    r1, r2 = vs[dx], vq[dx]
-                    if wx < 0 or wx > W - 1 or wy < 0 or wy > H - 1:
-                        r1, r2 = _box_sums(dst, wx, wy, h)
-                    # torch's float32 steps from the raw box sums: sum (w - m), sum (w - m)^2, the variance
-                    rs, rq = _F(r1), _F(r2)
-                    w_sum = rs - _F(area) * m32
-                    w_sq = rq - _F(2.0) * m32 * rs + _F(area) * m32 * m32
-                    w_var = max(w_sq + _F(-1.0 / area) * w_sum * w_sum, _F(0.0))
-                    rsq = _F(1.0 / np.sqrt(np.float64(max(w_var * tsq32, eps32))))
-                    cb[dy * k + dx] = -_F(corr) * rsq
+            o = dy * k
+            for dx in range(k):
+                corr = cc[o + dx]
+                if not box:
+                    var = max(vq[dx] - vs[dx] * vs[dx] / area, 0.0)
+                    cb[o + dx] = _F(-corr / np.sqrt(max(var * tsq, eps)))
+                    continue
+                wx = icx + dx - radius
+                r1, r2 = vs[dx], vq[dx]
+                if wx < 0 or wx > W - 1 or wy < 0 or wy > H - 1:
+                    r1, r2 = _box_sums(dst, wx, wy, h)
+                # torch's float32 steps from the raw box sums: sum (w - m), sum (w - m)^2, the variance
+                rs, rq = _F(r1), _F(r2)
+                w_sum = rs - _F(area) * m32
+                w_sq = rq - _F(2.0) * m32 * rs + _F(area) * m32 * m32
+                w_var = max(w_sq + _F(-1.0 / area) * w_sum * w_sum, _F(0.0))
+                rsq = _F(1.0 / np.sqrt(np.float64(max(w_var * tsq32, eps32))))
+                cb[o + dx] = -_F(corr) * rsq
             if dy + 1 < k:
                 for dx in range(k):
                     vs[dx] += hs[dy + p, dx] - hs[dy, dx]
@@ -210,7 +231,7 @@ if AVAILABLE:
         return ((cx + fx) + ((_F(ix) - half) + subx), (cy + fy) + ((_F(iy) - half) + suby), bv, edge_x or edge_y)
 
     @_jit
-    def _to_level0(src, dst, b, levels, px, py, sx, sy, p, search, refine, box, eps32, eps, tb, wb, cb, acc):
+    def _to_level0(src, dst, b, levels, px, py, sx, sy, p, search, refine, box, eps32, eps, tb, wb, cb, cc, acc):
         """tracking._match_to_level0 for item ``b`` of the pyramids (tuples of ``(B, H_l, W_l)``): the coarse levels
         ``levels - 1 .. 1``, then level 0. ``box``: bit ``l`` set where level ``l`` uses box sums.
 
@@ -221,11 +242,11 @@ if AVAILABLE:
             scale = _F(2.0**level)
             radius = search if level == levels - 1 else refine
             ex, ey, _, _ = _match_level(src[level][b], dst[level][b], px / scale, py / scale, ex / scale, ey / scale,
-                                        p, radius, (box >> level) & 1 == 1, eps32, eps, tb, wb, cb, acc)
+                                        p, radius, (box >> level) & 1 == 1, eps32, eps, tb, wb, cb, cc, acc)
             ex, ey = ex * scale, ey * scale
         radius0 = search if levels == 1 else refine
         return _match_level(src[0][b], dst[0][b], px, py, ex, ey, p, radius0, box & 1 == 1, eps32, eps, tb, wb, cb,
-                            acc)
+                            cc, acc)
 
     @_jit(inline="always")
     def _cubic(t):
@@ -377,12 +398,13 @@ if AVAILABLE:
         tb = np.empty((p, p))
         wb = np.zeros((p + 2 * radius, p + 2 * radius + 8))
         cb = np.empty((2 * radius + 1) ** 2, np.float32)
+        cc = np.empty((2 * radius + 1) ** 2 + 8)
         acc = np.empty((3, p + 2 * radius, 2 * radius + 1))
         eps = np.float64(eps32)
         for f in order:
             b, n = f // N, f % N
             x, y, best, edge = _to_level0(src, dst, b, levels, points[b, n, 0], points[b, n, 1], start[b, n, 0],
-                                          start[b, n, 1], p, search, refine, box, eps32, eps, tb, wb, cb, acc)
+                                          start[b, n, 1], p, search, refine, box, eps32, eps, tb, wb, cb, cc, acc)
             out_pos[b, n, 0] = x
             out_pos[b, n, 1] = y
             out_best[b, n] = best
@@ -420,7 +442,7 @@ def _padded(count: int, n: int) -> int:
     return min(n, -(-count // _SLOT_STEP) * _SLOT_STEP)
 
 
-def _box_bits(n: int, pyramid: tuple[np.ndarray, ...], radii: list[int], patch_size: int) -> int:
+def _box_bits(n: int, pyramid: tuple[np.ndarray, ...], radii: list[int]) -> int:
     """Bit ``l`` set where the torch path's level-``l`` match of ``n`` features with ``radii[l]`` uses box sums."""
     bits = 0
     for level, radius in enumerate(radii):
@@ -441,8 +463,9 @@ class _Runner:
     def __init__(self, threads: int) -> None:
         self.threads = threads
 
-    def __call__(self, kernel, order: torch.Tensor, *args) -> None:
-        idx = order.numpy()
+    def __call__(self, kernel, mask: np.ndarray, *args) -> None:
+        """``kernel(*args, order)`` for the features where ``mask (B, N)`` is True."""
+        idx = np.flatnonzero(mask)
         parts = max(1, min(self.threads, math.ceil(len(idx) / _MIN_PER_THREAD)))
         shares = [np.ascontiguousarray(idx[i::parts]) for i in range(parts)]
         Workers(parts).map(lambda share: kernel(*args, share), shares)
@@ -478,67 +501,67 @@ def track_compiled(
     levels = len(pyr_prev)
     prev = tuple(_np(p[:, 0]) for p in pyr_prev)
     nxt = tuple(_np(p[:, 0]) for p in pyr_next)
-    kp = keypoints.detach().contiguous()
-    st = start.detach().contiguous()
-    kpn, stn = kp.numpy(), st.numpy()
+    kp, st = _np(keypoints), _np(start)
+    weights = weights.detach()
     b, n = weights.shape
-    live = weights > 0
+    live = weights.numpy() > 0
     eps32 = np.float32(1e-6)
     run = _Runner(max(1, threads or torch.get_num_threads()))
     # The torch path matches the live features in (B, M) subsets whose size decides, per level, whether the
     # window sums come from box maps (tracking._match_level): the sizes are repeated here for that choice.
     slots = n if count > n - _SLOT_STEP else _padded(count, n)
-    pos = kp.clone()
-    best = torch.zeros_like(weights)
-    edge = torch.zeros(b, n, dtype=torch.bool)
-    outs = (pos.numpy(), best.numpy(), edge.numpy())
+    pos = kp.copy()
+    best = np.zeros((b, n), np.float32)
+    edge = np.zeros((b, n), np.bool_)
     pred_r = 0 if predicted_radius is None or levels == 1 else int(predicted_radius)
-    full_radii = _radii(levels, search_radius, refine_radius)
-    found = torch.zeros_like(live)
+    radii = _radii(levels, search_radius, refine_radius)
+    found = np.zeros_like(live)
+    # (the comparisons below take python floats as float32, as torch does)
     if pred_r:
         # level 0 around the prediction, then the full search for the live features it missed
-        run(_search, live.view(-1).nonzero().view(-1), prev, nxt, 1, kpn, stn, patch_size, pred_r, pred_r,
-            _box_bits(slots, prev, [pred_r], patch_size), eps32, *outs)
-        miss = edge.clone()
+        run(_search, live, prev, nxt, 1, kp, st, patch_size, pred_r, pred_r, _box_bits(slots, prev, [pred_r]), eps32,
+            pos, best, edge)
+        miss = edge.copy()
         if min_score is not None:
-            miss |= -best < min_score
+            miss |= -best < np.float32(min_score)
         retry = live & miss
         found = live & ~miss
-        retries = int(retry.sum(dim=1).max())
+        retries = int(retry.sum(axis=1).max())
         if retries:
-            run(_search, retry.view(-1).nonzero().view(-1), prev, nxt, levels, kpn, stn, patch_size, search_radius,
-                refine_radius, _box_bits(_padded(retries, slots), prev, full_radii, patch_size), eps32, *outs)
+            run(_search, retry, prev, nxt, levels, kp, st, patch_size, search_radius, refine_radius,
+                _box_bits(_padded(retries, slots), prev, radii), eps32, pos, best, edge)
     else:
-        run(_search, live.view(-1).nonzero().view(-1), prev, nxt, levels, kpn, stn, patch_size, search_radius,
-            refine_radius, _box_bits(slots, prev, full_radii, patch_size), eps32, *outs)
-    spread = torch.zeros_like(weights)
-    run(_polish, live.view(-1).nonzero().view(-1), prev[0], nxt[0], kpn, patch_size, lk_iters, eps32, pos.numpy(),
-        spread.numpy())
-    score = -best
+        run(_search, live, prev, nxt, levels, kp, st, patch_size, search_radius, refine_radius,
+            _box_bits(slots, prev, radii), eps32, pos, best, edge)
+    spread = np.zeros((b, n), np.float32)
+    run(_polish, live, prev[0], nxt[0], kp, patch_size, lk_iters, eps32, pos, spread)
+    score = np.where(live, -best, np.float32(0.0))
     # tracking._track_live's tests, as there
-    h, w = pyr_prev[0].shape[-2:]
-    ok = live & ~edge & (spread >= min_texture**2 * (patch_size * patch_size - 1))
+    h, w = prev[0].shape[-2:]
+    ok = live & ~edge & (spread >= np.float32(min_texture**2 * (patch_size * patch_size - 1)))
     if min_score is not None:
-        ok &= score >= min_score
+        ok &= score >= np.float32(min_score)
     x, y = pos[..., 0], pos[..., 1]
-    ok &= (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & torch.isfinite(pos).all(dim=-1)
+    ok &= (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & np.isfinite(pos).all(axis=-1)
     fb_error = torch.zeros_like(weights)
     if fb_check:
-        back_ok = torch.ones_like(ok)
-        ways = [(ok & ~found, fb_levels, search_radius, _radii(fb_levels, search_radius, refine_radius))]
+        back_ok = np.ones_like(ok)
+        ways = [(ok & ~found, fb_levels, search_radius)]
         if fb_predicted:
-            ways.append((ok & found, 1, refine_radius, [refine_radius]))
-        for check, lv, radius, radii in ways:
-            todo = slots if slots <= _SLOT_STEP else int(check.sum(dim=1).max())
+            ways.append((ok & found, 1, refine_radius))
+        for check, lv, radius in ways:
+            todo = slots if slots <= _SLOT_STEP else int(check.sum(axis=1).max())
             if todo == 0:
                 continue
             size = slots if todo > slots - _SLOT_STEP else _padded(todo, slots)
-            back = torch.zeros_like(kp)
-            back_edge = torch.zeros_like(edge)
-            run(_search, check.view(-1).nonzero().view(-1), nxt, prev, lv, pos.numpy(), kpn, patch_size, radius,
-                refine_radius, _box_bits(size, nxt, radii, patch_size), eps32, back.numpy(), best.clone().numpy(),
-                back_edge.numpy())
-            fb_error = torch.where(check, (back - kp).norm(dim=-1), fb_error)
+            back = np.zeros_like(kp)
+            back_edge = np.zeros_like(edge)
+            run(_search, check, nxt, prev, lv, pos, kp, patch_size, radius, refine_radius,
+                _box_bits(size, nxt, _radii(lv, radius, refine_radius)), eps32, back, best.copy(), back_edge)
+            # the round trip's error as the torch path measures it (torch's norm)
+            err = torch.from_numpy(back).sub_(torch.from_numpy(kp)).norm(dim=-1)
+            fb_error = torch.where(torch.from_numpy(check), err, fb_error)
             back_ok &= ~(back_edge & check)
-        ok &= back_ok & (fb_error <= fb_threshold)
-    return (torch.where(live.unsqueeze(-1), pos, kp), weights * ok.to(weights.dtype), score * live, fb_error)
+        ok &= back_ok & (fb_error.numpy() <= np.float32(fb_threshold))
+    # empty slots: pos kept the input keypoint, best (so score) is 0
+    return torch.from_numpy(pos), weights * torch.from_numpy(ok).to(weights.dtype), torch.from_numpy(score), fb_error
