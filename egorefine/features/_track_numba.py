@@ -309,7 +309,8 @@ if AVAILABLE:
 
     @_jit
     def _lk(src, dst, px, py, ex, ey, p, iters, eps32, eps, eb, tb, gxb, gyb, ib, hv, taps, wxs):
-        """tracking._lk_refine (ZNCC) for one level-0 feature: the polished ``(x, y)``.
+        """tracking._lk_refine (ZNCC) for one level-0 feature: the polished ``(x, y)`` and the template's sum of
+        squared deviations (the same sum as :func:`_spread`'s).
 
         Scratch: ``eb (p + 2, p + 2)``, ``tb``, ``gxb``, ``gyb``, ``ib (p, p)``, all float64, and :func:`_sample`'s.
         """
@@ -374,7 +375,7 @@ if AVAILABLE:
             sty = _clamp(_F(((sxx + reg) * by - sxy * bx) / det), _F(-0.5), _F(0.5))
             posx = bx0 + _clamp(posx + stx - bx0, _F(-1.0), _F(1.0))
             posy = by0 + _clamp(posy + sty - by0, _F(-1.0), _F(1.0))
-        return posx + fx, posy + fy
+        return posx + fx, posy + fy, tq
 
     @_jit
     def _spread(src, px, py, p, tb):
@@ -428,9 +429,11 @@ if AVAILABLE:
             b, n = f // N, f % N
             px, py = points[b, n, 0], points[b, n, 1]
             if iters > 0:
-                pos[b, n, 0], pos[b, n, 1] = _lk(src[b], dst[b], px, py, pos[b, n, 0], pos[b, n, 1], p, iters, eps32,
-                                                 eps, eb, tb, gxb, gyb, ib, hv, taps, wxs)
-            spread[b, n] = _F(_spread(src[b], px, py, p, tb))
+                pos[b, n, 0], pos[b, n, 1], q = _lk(src[b], dst[b], px, py, pos[b, n, 0], pos[b, n, 1], p, iters,
+                                                    eps32, eps, eb, tb, gxb, gyb, ib, hv, taps, wxs)
+            else:
+                q = _spread(src[b], px, py, p, tb)
+            spread[b, n] = _F(q)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -458,7 +461,7 @@ def _radii(levels: int, search: int, refine: int) -> list[int]:
 
 
 class _Runner:
-    """Runs a kernel over a feature list on the worker threads (strided shares: costly features are spread)."""
+    """Runs a kernel over a feature list on the worker threads (dealt out in turn: costly features are spread)."""
 
     def __init__(self, threads: int) -> None:
         self.threads = threads

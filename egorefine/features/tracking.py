@@ -45,6 +45,13 @@ to both calls that use that frame.
 ``-cost / temperature`` over a ``refine_radius`` window around the rounded hard estimate
 (before the polish of step 4), so that the returned positions have smooth gradients with
 respect to both images and the keypoints.
+
+For float32 CPU tensors that need no gradient, hard matching and ``cost="zncc"`` (the
+refiner's case), the same steps run compiled (:mod:`egorefine.features._track_numba`, numba):
+one loop over the live features per stage instead of a dozen small torch ops per level, about
+3x faster at a few hundred features. Its positions agree with this torch path (the reference,
+also for GPU tensors, autograd, ``soft=True`` and the other costs) to float32 rounding and its
+decisions are the same but for near-ties; ``_COMPILED = False`` switches it off.
 """
 
 from __future__ import annotations

@@ -83,6 +83,31 @@ def test_compiled_matches_torch_with_prediction_and_pyramids(frames, settings):
 
 
 @needs_numba
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {"patch_size": 7, "search_radius": 4, "refine_radius": 1, "levels": 2, "lk_iters": 0, "min_score": None},
+        {"patch_size": 11, "levels": 1, "search_radius": 9, "lk_iters": 3, "fb_check": False},
+        {"predicted_radius": None, "fb_levels": 2, "fb_threshold": 0.3, "min_texture": 0.05},
+    ],
+)
+def test_compiled_matches_torch_other_settings(frames, settings):
+    grey, _, _, kp1, w1, predicted = frames
+    ref, new = _both(grey[1:2], grey[2:3], kp1[:, :96], w1[:, :96], predicted=predicted[:, :96], **settings)
+    _agree(ref, new, w1[:, :96])
+
+
+@needs_numba
+def test_thread_count_does_not_change_the_result(frames):
+    grey, _, _, kp1, w1, predicted = frames
+    pyr = (build_pyramid(grey[1:2], 3), build_pyramid(grey[2:3], 3))
+    args = (*pyr, kp1, w1, predicted, int((w1 > 0).sum()), 9, 6, 2, True, 1.0, 0.7, 0.01, 1, 2, True, 3)
+    one, two = _track_numba.track_compiled(*args, threads=1), _track_numba.track_compiled(*args, threads=2)
+    for a, b in zip(one, two, strict=True):
+        assert torch.equal(a, b)
+
+
+@needs_numba
 def test_batch_items_and_empty_slots(frames):
     grey, kp, w, kp1, w1, predicted = frames
     # two pairs in a batch, the second with every third slot emptied and one negative weight
