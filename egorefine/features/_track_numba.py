@@ -390,34 +390,25 @@ if AVAILABLE:
         return q
 
     @_jit
-    def _search(src, dst, levels, points, start, p, search, refine, box, eps32, out_pos, out_best, out_edge, order):
+    def _search(src, dst, levels, points, start, p, search, refine, box, eps32, polish, iters, floor, out_pos,
+                out_best, out_edge, spread, order):
         """tracking._match_to_level0 of the features ``order`` (flat ``b * N + n`` indices): ``points (B, N, 2)`` of
         ``src`` (level-0 px) matched into ``dst`` from ``start`` over ``levels`` levels; writes their level-0
-        positions, best costs and on-edge flags."""
+        positions, best costs and on-edge flags.
+
+        ``polish``: 0 no more; 2: then tracking._lk_refine (``iters``) and the template's sum of squared deviations
+        (the texture test, into ``spread``); 1: those only for a match that the torch path keeps (not on the edge,
+        cost ``-best >= floor``), the others being searched again. The polish right after the search finds the
+        feature's pixels still in the cache.
+        """
         N = points.shape[1]
         radius = max(search, refine)
-        tb = np.empty((p, p))
+        tb = np.empty((p + 2, p + 2))
         wb = np.zeros((p + 2 * radius, p + 2 * radius + 8))
         cb = np.empty((2 * radius + 1) ** 2, np.float32)
         cc = np.empty((2 * radius + 1) ** 2 + 8)
         acc = np.empty((3, p + 2 * radius, 2 * radius + 1))
-        eps = np.float64(eps32)
-        for f in order:
-            b, n = f // N, f % N
-            x, y, best, edge = _to_level0(src, dst, b, levels, points[b, n, 0], points[b, n, 1], start[b, n, 0],
-                                          start[b, n, 1], p, search, refine, box, eps32, eps, tb, wb, cb, cc, acc)
-            out_pos[b, n, 0] = x
-            out_pos[b, n, 1] = y
-            out_best[b, n] = best
-            out_edge[b, n] = edge
-
-    @_jit
-    def _polish(src, dst, points, p, iters, eps32, pos, spread, order):
-        """tracking._lk_refine of the features ``order`` (positions ``pos`` updated in place, level 0) and their
-        template's sum of squared deviations (the texture test)."""
-        N = points.shape[1]
         eb = np.empty((p + 2, p + 2))
-        tb = np.empty((p + 2, p + 2))
         gxb = np.empty((p, p))
         gyb = np.empty((p, p))
         ib = np.empty((p, p))
@@ -428,12 +419,19 @@ if AVAILABLE:
         for f in order:
             b, n = f // N, f % N
             px, py = points[b, n, 0], points[b, n, 1]
-            if iters > 0:
-                pos[b, n, 0], pos[b, n, 1], q = _lk(src[b], dst[b], px, py, pos[b, n, 0], pos[b, n, 1], p, iters,
-                                                    eps32, eps, eb, tb, gxb, gyb, ib, hv, taps, wxs)
-            else:
-                q = _spread(src[b], px, py, p, tb)
-            spread[b, n] = _F(q)
+            x, y, best, edge = _to_level0(src, dst, b, levels, px, py, start[b, n, 0], start[b, n, 1], p, search,
+                                          refine, box, eps32, eps, tb, wb, cb, cc, acc)
+            out_best[b, n] = best
+            out_edge[b, n] = edge
+            if polish == 2 or (polish == 1 and not edge and not -best < floor):
+                if iters > 0:
+                    x, y, q = _lk(src[0][b], dst[0][b], px, py, x, y, p, iters, eps32, eps, eb, tb, gxb, gyb, ib, hv,
+                                  taps, wxs)
+                else:
+                    q = _spread(src[0][b], px, py, p, tb)
+                spread[b, n] = _F(q)
+            out_pos[b, n, 0] = x
+            out_pos[b, n, 1] = y
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -471,7 +469,14 @@ class _Runner:
         idx = np.flatnonzero(mask)
         parts = max(1, min(self.threads, math.ceil(len(idx) / _MIN_PER_THREAD)))
         shares = [np.ascontiguousarray(idx[i::parts]) for i in range(parts)]
-        Workers(parts).map(lambda share: kernel(*args, share), shares)
+        if parts == 1:
+            kernel(*args, shares[0])
+            return
+        # the calling thread takes the first share itself (a hand-off to a pool thread costs tens of microseconds)
+        pending = [Workers(parts).pool.submit(kernel, *args, share) for share in shares[1:]]
+        kernel(*args, shares[0])
+        for job in pending:
+            job.result()
 
 
 def track_compiled(
@@ -519,25 +524,24 @@ def track_compiled(
     pred_r = 0 if predicted_radius is None or levels == 1 else int(predicted_radius)
     radii = _radii(levels, search_radius, refine_radius)
     found = np.zeros_like(live)
-    # (the comparisons below take python floats as float32, as torch does)
+    spread = np.zeros((b, n), np.float32)
+    # (the comparisons take python floats as float32, as torch does)
+    floor = np.float32(-np.inf if min_score is None else min_score)
+    polish = (lk_iters, floor, pos, best, edge, spread)
     if pred_r:
-        # level 0 around the prediction, then the full search for the live features it missed
+        # level 0 around the prediction (and the polish of what it finds), then the full search for the live
+        # features it missed
         run(_search, live, prev, nxt, 1, kp, st, patch_size, pred_r, pred_r, _box_bits(slots, prev, [pred_r]), eps32,
-            pos, best, edge)
-        miss = edge.copy()
-        if min_score is not None:
-            miss |= -best < np.float32(min_score)
-        retry = live & miss
-        found = live & ~miss
+            1, *polish)
+        retry = live & (edge | (-best < floor))
+        found = live & ~retry
         retries = int(retry.sum(axis=1).max())
         if retries:
             run(_search, retry, prev, nxt, levels, kp, st, patch_size, search_radius, refine_radius,
-                _box_bits(_padded(retries, slots), prev, radii), eps32, pos, best, edge)
+                _box_bits(_padded(retries, slots), prev, radii), eps32, 2, *polish)
     else:
         run(_search, live, prev, nxt, levels, kp, st, patch_size, search_radius, refine_radius,
-            _box_bits(slots, prev, radii), eps32, pos, best, edge)
-    spread = np.zeros((b, n), np.float32)
-    run(_polish, live, prev[0], nxt[0], kp, patch_size, lk_iters, eps32, pos, spread)
+            _box_bits(slots, prev, radii), eps32, 2, *polish)
     score = np.where(live, -best, np.float32(0.0))
     # tracking._track_live's tests, as there
     h, w = prev[0].shape[-2:]
@@ -560,7 +564,8 @@ def track_compiled(
             back = np.zeros_like(kp)
             back_edge = np.zeros_like(edge)
             run(_search, check, nxt, prev, lv, pos, kp, patch_size, radius, refine_radius,
-                _box_bits(size, nxt, _radii(lv, radius, refine_radius)), eps32, back, best.copy(), back_edge)
+                _box_bits(size, nxt, _radii(lv, radius, refine_radius)), eps32, 0, 0, floor, back, best.copy(),
+                back_edge, spread)
             # the round trip's error as the torch path measures it (torch's norm)
             err = torch.from_numpy(back).sub_(torch.from_numpy(kp)).norm(dim=-1)
             fb_error = torch.where(torch.from_numpy(check), err, fb_error)
