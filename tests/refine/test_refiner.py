@@ -289,6 +289,8 @@ def test_local_search_needs_right_images_only_when_given(small_seq):
     assert not out.stereo_ran and torch.isfinite(out.disparity).all()
     with pytest.raises(ValueRangeError, match="local_search"):
         EgoMotionRefiner(local_search=1)
+    with pytest.raises(ValueRangeError, match="local_search_block"):
+        EgoMotionRefiner(local_search=2, local_search_block=4)
 
 
 def test_measure_holes_adds_accurate_values_where_the_view_changed():
