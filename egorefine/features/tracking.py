@@ -159,16 +159,19 @@ def _extract_patches(image: torch.Tensor, centres: torch.Tensor, size: int) -> t
 
 
 def _box_maps(image: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sums of ``image`` (B, 1, H, W) and of its square over the ``size x size`` box around every pixel.
+    """Sums of ``image`` (B, 1, H, W) and of its square over the ``size x size`` box around every
+    centre from ``-r`` to ``H - 1 + r`` / ``W - 1 + r`` (``r = size // 2``): (B, 1, H + 2r, W + 2r),
+    centre ``(y, x)`` at ``[y + r, x + r]``.
 
-    The image is extended by repeating its border, as :func:`_extract_patches` does. Running
-    sums (cumsum, in float64 so that the differences do not lose digits) along each axis;
-    used on coarse levels, where the search windows of all features together cover more
-    pixels than the image itself.
+    The image is extended by repeating its border, as :func:`_extract_patches` does. A box centred
+    further out holds the same pixels as one centred ``r`` outside, so clamping a centre into the
+    map reads the exact sum of a window cut anywhere. Running sums (cumsum, in float64 so that the
+    differences do not lose digits) along each axis; used on coarse levels, where the search
+    windows of all features together cover more pixels than the image itself.
     """
     r = size // 2
     x = torch.cat([image, image * image], dim=1)
-    x = F.pad(x, (r + 1, r, r + 1, r), mode="replicate").double()
+    x = F.pad(x, (2 * r + 1, 2 * r, 2 * r + 1, 2 * r), mode="replicate").double()
     x = x.cumsum(-1)
     x = x[..., size:] - x[..., :-size]
     x = x.cumsum(-2)
@@ -290,7 +293,8 @@ def _match_level(
         # Coarse level: box sums of the whole (small) image, then one gather per shift, are
         # cheaper than box sums window by window.
         box_sum, box_sq = _box_maps(dst, patch_size)
-        box = (_extract_patches(box_sum, centre, k), _extract_patches(box_sq, centre, k))
+        at = centre + patch_size // 2  # the maps start r before the image (clamped there: exact, see _box_maps)
+        box = (_extract_patches(box_sum, at, k), _extract_patches(box_sq, at, k))
     cmap = _cost_map(template, window, cost, box)
     if temperature is None:
         shift, best, on_edge = _best_shift(cmap)

@@ -530,3 +530,37 @@ def test_fb_levels_reach_of_the_way_back(scene):
         assert ok.sum() >= 100, (fb_levels, int(ok.sum()))
         assert median_error(out, truth) < 0.1
         assert out.fb_error[0][ok].max() <= 1.0 and out.fb_error[0][ok].median() < 0.3
+
+
+@pytest.mark.parametrize("size", [5, 9])
+def test_box_maps_give_the_window_sums_of_any_centre(size):
+    """Coarse levels read window sums from box maps; a window cut partly or wholly outside the image (border
+    repeated) must get the same sums as the window itself, or the cost depends on which path ran."""
+    from egorefine.features.tracking import _box_maps, _extract_patches
+
+    image = torch.rand(1, 1, 20, 30, generator=torch.Generator().manual_seed(0))
+    box_sum, box_sq = _box_maps(image, size)
+    ys, xs = torch.meshgrid(torch.arange(-14, 34.0), torch.arange(-14, 44.0), indexing="ij")
+    centres = torch.stack([xs.flatten(), ys.flatten()], -1)[None]  # (1, N, 2) from far outside to far outside
+    windows = _extract_patches(image, centres, size)
+    read = _extract_patches(box_sum, centres + size // 2, 1)[..., 0, 0]
+    read_sq = _extract_patches(box_sq, centres + size // 2, 1)[..., 0, 0]
+    torch.testing.assert_close(read, windows.sum((-2, -1)), atol=1e-4, rtol=0)
+    torch.testing.assert_close(read_sq, windows.square().sum((-2, -1)), atol=1e-4, rtol=0)
+
+
+def test_a_border_feature_matches_alike_alone_and_among_many():
+    """Whether a level takes its window sums from box maps depends on how many features it matches at once; a
+    feature near the border must come out the same either way (batch neighbours must not change it)."""
+    from egorefine.features.tracking import _match_level
+
+    g = torch.Generator().manual_seed(1)
+    src = smooth_texture(1, 24, 32).float()
+    dst = torch.roll(src, (1, -2), (-2, -1))
+    point = torch.tensor([[[1.0, 12.0]]])  # next to the left border: shifts reach outside the image
+    others = torch.rand(1, 60, 2, generator=g) * torch.tensor([31.0, 23.0])
+    alone = _match_level(src, dst, point, point, 5, 3, "zncc")  # 1 * 7^2 <= 2 * 24 * 32: window convolutions
+    many_pts = torch.cat([point, others], 1)
+    many = _match_level(src, dst, many_pts, many_pts, 5, 3, "zncc")  # 61 * 49 > 1536: box maps
+    torch.testing.assert_close(many[0][:, :1], alone[0], atol=1e-4, rtol=0)
+    torch.testing.assert_close(many[1][:, :1], alone[1], atol=1e-5, rtol=0)
