@@ -21,15 +21,16 @@ except ImportError:  # pragma: no cover - exercised by the fallback tests throug
 AVAILABLE = numba is not None
 
 
-def jit(fn=None, inline: str = "never"):
-    """``numba.njit(cache=True, nogil=True)`` without fast-math (the kernels repeat the torch path's float32
-    operations); without a writable cache location numba cannot cache, so it only compiles."""
+def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False):
+    """``numba.njit(cache=True, nogil=True)``, by default without fast-math (the kernels repeat the torch path's
+    float32 operations; ``fastmath`` takes numba's flags for a kernel whose order of additions need not follow
+    it); without a writable cache location numba cannot cache, so it only compiles."""
     if fn is None:
-        return lambda f: jit(f, inline)
+        return lambda f: jit(f, inline, fastmath)
     try:
-        return numba.njit(cache=True, nogil=True, fastmath=False, inline=inline)(fn)
+        return numba.njit(cache=True, nogil=True, fastmath=fastmath, inline=inline)(fn)
     except RuntimeError:  # "cannot cache function ...: no locator available"
-        return numba.njit(cache=False, nogil=True, fastmath=False, inline=inline)(fn)
+        return numba.njit(cache=False, nogil=True, fastmath=fastmath, inline=inline)(fn)
 
 
 def bands(n: int, parts: int) -> list[tuple[int, int]]:

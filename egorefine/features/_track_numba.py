@@ -36,7 +36,7 @@ import math
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers, numba
+from ..core._jit import AVAILABLE, Workers
 from ..core._jit import jit as _jit
 
 __all__ = ["AVAILABLE", "track_compiled"]
@@ -51,16 +51,9 @@ _SLOT_STEP = 32
 
 if AVAILABLE:
 
-    def _jit_reassoc(fn):
-        """:func:`egorefine.core._jit.jit` with reassociation and fused multiply-adds allowed: only for the float64
-        window correlations, whose order of additions does not follow the torch path's anyway."""
-        flags = {"reassoc", "contract"}
-        try:
-            return numba.njit(cache=True, nogil=True, fastmath=flags)(fn)
-        except RuntimeError:  # no cache locator: compile only
-            return numba.njit(cache=False, nogil=True, fastmath=flags)(fn)
-
-    @_jit_reassoc
+    # reassociation and fused multiply-adds allowed: only for the float64 window correlations, whose order of
+    # additions does not follow the torch path's anyway
+    @_jit(fastmath={"reassoc", "contract"})
     def _correlate(tb, wb, p, k, cc):
         """``cc[dy * k + dx] = sum_ij tb[i, j] wb[dy + i, dx + j]`` for ``dy, dx < k``, eight shifts at a time (a
         fixed width: SIMD); ``wb`` has 8 spare columns, ``cc`` 8 spare entries."""
@@ -124,33 +117,15 @@ if AVAILABLE:
         return s
 
     @_jit
-    def _box_sums(dst, cx, cy, h):
-        """Sums of ``dst`` and of its square over the ``2 h + 1`` box around the pixel ``(cx, cy)``, border
-        repeated (tracking._box_maps: a centre more than ``h`` outside holds the same pixels as one ``h`` outside,
-        so it is clamped there)."""
-        H, W = dst.shape
-        cx = _clamp(cx, -h, W - 1 + h)
-        cy = _clamp(cy, -h, H - 1 + h)
-        s1 = s2 = 0.0
-        for i in range(-h, h + 1):
-            row = dst[_clamp(cy + i, 0, H - 1)]
-            for j in range(-h, h + 1):
-                v = np.float64(row[_clamp(cx + j, 0, W - 1)])
-                s1 += v
-                s2 += v * v
-        return s1, s2
-
-    @_jit
     def _match_level(src, dst, px, py, ex, ey, p, radius, box, eps32, eps, tb, wb, cb, cc, acc):
         """tracking._match_level (hard, ZNCC) for one feature: ``(px, py)`` in ``src``, estimate ``(ex, ey)`` in
         ``dst``, both float32 px of this level. Returns ``(x, y, best cost, on edge)``.
 
-        ``box``: the torch path takes this level's window sums from box maps (tracking._box_maps, read at the
-        window centre clamped into the image, then combined in float32): the costs repeat that.
+        ``box``: the torch path takes this level's window sums from box maps (tracking._box_maps: the window's own
+        sums, combined in float32): the costs repeat that combination.
         Scratch: ``tb (>= p, >= p)``, ``wb (>= S, >= S + 8)`` float64 (finite) with ``S = p + 2 radius``,
         ``cb (>= k * k)`` float32, ``cc (>= k * k + 8)`` and ``acc (3, >= S, >= k)`` float64, ``k = 2 radius + 1``.
         """
-        H, W = dst.shape
         h = (p - 1) // 2
         pix = _F(np.rint(px))
         piy = _F(np.rint(py))
@@ -201,7 +176,6 @@ if AVAILABLE:
         tsq32 = _F(tsq)
         _correlate(tb, wb, p, k, cc)
         for dy in range(k):
-            wy = icy + dy - radius
             o = dy * k
             for dx in range(k):
                 corr = cc[o + dx]
@@ -209,12 +183,8 @@ if AVAILABLE:
                     var = max(vq[dx] - vs[dx] * vs[dx] / area, 0.0)
                     cb[o + dx] = _F(-corr / np.sqrt(max(var * tsq, eps)))
                     continue
-                wx = icx + dx - radius
-                r1, r2 = vs[dx], vq[dx]
-                if wx < 0 or wx > W - 1 or wy < 0 or wy > H - 1:
-                    r1, r2 = _box_sums(dst, wx, wy, h)
                 # torch's float32 steps from the raw box sums: sum (w - m), sum (w - m)^2, the variance
-                rs, rq = _F(r1), _F(r2)
+                rs, rq = _F(vs[dx]), _F(vq[dx])
                 w_sum = rs - _F(area) * m32
                 w_sq = rq - _F(2.0) * m32 * rs + _F(area) * m32 * m32
                 w_var = max(w_sq + _F(-1.0 / area) * w_sum * w_sum, _F(0.0))
