@@ -1,11 +1,12 @@
 """CPU inference path of :func:`egorefine.stereo.residual.match_residual`, compiled with numba.
 
-The torch path's formulas in float32, one band of rows at a time: the ``2 radius + 1`` planes of
-``|L' - R'(warped)|`` are built for the band's rows (plus the window's margin) once, then every
-output row sums its window (column sums, then row sums) and reads the winner, its neighbours, the
-runner-up and the texture sum while the row is in cache. The sums are added in another order than
-``avg_pool2d``'s, so the costs agree to float32 rounding, not bit for bit. Bands run as nogil
-kernels on :class:`egorefine.core._jit.Workers`; the output does not depend on the thread count.
+The torch path's formulas in float32, one band of rows at a time: each row's ``2 radius + 1`` planes
+of ``|L' - R'(warped)|`` are built once, when the row enters the window (a ring of the window's rows
+stays in cache), then every output row slides its column sums down, sums its window along the row and
+reads the winner, its neighbours, the runner-up and the texture sum while the row is in cache. The
+sums are added in another order than ``avg_pool2d``'s, so the costs agree to float32 rounding, not
+bit for bit. Bands of a fixed number of rows run as nogil kernels on
+:class:`egorefine.core._jit.Workers`; the output does not depend on the thread count.
 """
 
 from __future__ import annotations
@@ -20,64 +21,77 @@ from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE
 
 __all__ = ["AVAILABLE", "match_residual"]
 
-_MIN_BAND_ROWS = 16
+# rows per band: fixed, so that where the column sums restart (and so their float rounding) does not depend on the
+# thread count; each band recomputes the window's 2 r rows above it
+_BAND_ROWS = 32
 _F = np.float32
 
 
 if AVAILABLE:
 
+    @_jit(inline="always")
+    def _diff_row(lrow, rrow, prow, okrow, radius, out, base, frac, first, inside, near):
+        """The ``2 radius + 1`` planes of ``|L' - R'(warped)|`` of one row into ``out[:n]``, and ``|L'|`` into
+        ``out[n]`` (its window sum is the texture measure); ``base .. near`` are scratch rows.
+
+        Per row: the band centre's floor and fraction (a compute-only loop), the ``n + 1`` right-row samples every
+        candidate interpolates between (a gather-only loop), then the planes from them (vectorised); pixels whose
+        band leaves the row take the torch path's clamped samples in a scalar fix-up loop.
+        """
+        W = lrow.shape[0]
+        n = 2 * radius + 1
+        top = _F(W - 1)
+        ld = out[n]
+        for x in range(W):
+            p = prow[x]
+            # as the torch path: the prior counts as 0 where it may not be used
+            b = _F(x) - (p if okrow[x] and np.isfinite(p) else _F(0.0))
+            fl = np.floor(b)
+            base[x] = b
+            frac[x] = b - fl
+            # candidate j samples rrow[fl + radius - j] and the next one (fl clamped first: a huge prior must
+            # not overflow the integer conversion; such pixels take the fix-up loop)
+            lo = np.int64(min(max(fl, _F(-2 * W)), _F(2 * W))) - radius
+            inside[x] = (lo >= 0) & (lo + 2 * radius <= W - 2)
+            first[x] = min(max(lo, np.int64(0)), np.int64(W - 2 - 2 * radius))
+            ld[x] = abs(lrow[x])
+        for k in range(n + 1):
+            nk = near[k]
+            for x in range(W):
+                nk[x] = rrow[first[x] + k]
+        for j in range(n):
+            dj = out[j]
+            v0s, v1s = near[2 * radius - j], near[2 * radius - j + 1]
+            for x in range(W):
+                v0 = v0s[x]
+                dj[x] = abs(lrow[x] - (v0 + frac[x] * (v1s[x] - v0)))
+        for x in range(W):
+            if inside[x]:
+                continue
+            for j in range(n):  # the torch path's clamp to [0, W - 1]
+                sc = min(max(base[x] - _F(j - radius), _F(0.0)), top)
+                x0 = min(np.floor(sc), _F(W - 2))
+                f = sc - x0
+                v0 = rrow[np.int64(x0)]
+                out[j, x] = abs(lrow[x] - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
+
     @_jit
     def _band(lp, rp, prior, ok, y0, y1, radius, r, parabola, uniq, t_need, flt, disparity, valid, variance):
-        """Output rows ``[y0, y1)`` of one image pair. ``flt``: ``(area * cost floor, eps, 1 + uniqueness)``."""
+        """Output rows ``[y0, y1)`` of one image pair. ``flt``: ``(area * cost floor, eps, 1 + uniqueness)``.
+
+        The window's rows of difference planes are kept in a ring of ``2 r + 2`` slots, each row computed once when
+        it enters the window: the ring (~120 kB at 640 px) stays in cache while the column sums slide down.
+        """
         H, W = lp.shape
         n = 2 * radius + 1
-        a0, a1 = max(y0 - r, 0), min(y1 + r, H)
-        # planes 0..n-1: |L' - R'(warped)| per candidate; plane n: |L'|, whose window sum is the texture measure
-        diff = np.empty((n + 1, a1 - a0, W), np.float32)
+        slots = 2 * r + 2
+        ring = np.empty((slots, n + 1, W), np.float32)
         top = _F(W - 1)
-        # per row: the band centre's floor and fraction (a compute-only loop), the n + 1 right-row samples every
-        # candidate interpolates between (a gather-only loop), then the n planes from them (vectorised); pixels
-        # whose band leaves the row take the torch path's clamped samples in a scalar fix-up loop
         base = np.empty(W, np.float32)
         frac = np.empty(W, np.float32)
         first = np.empty(W, np.int64)
         inside = np.empty(W, np.bool_)
         near = np.empty((n + 1, W), np.float32)
-        for y in range(a0, a1):
-            lrow, rrow, prow, okrow = lp[y], rp[y], prior[y], ok[y]
-            ld = diff[n, y - a0]
-            for x in range(W):
-                p = prow[x]
-                # as the torch path: the prior counts as 0 where it may not be used
-                b = _F(x) - (p if okrow[x] and np.isfinite(p) else _F(0.0))
-                fl = np.floor(b)
-                base[x] = b
-                frac[x] = b - fl
-                # candidate j samples rrow[fl + radius - j] and the next one (fl clamped first: a huge prior must
-                # not overflow the integer conversion; such pixels take the fix-up loop)
-                lo = np.int64(min(max(fl, _F(-2 * W)), _F(2 * W))) - radius
-                inside[x] = (lo >= 0) & (lo + 2 * radius <= W - 2)
-                first[x] = min(max(lo, np.int64(0)), np.int64(W - 2 - 2 * radius))
-                ld[x] = abs(lrow[x])
-            for k in range(n + 1):
-                nk = near[k]
-                for x in range(W):
-                    nk[x] = rrow[first[x] + k]
-            for j in range(n):
-                dj = diff[j, y - a0]
-                v0s, v1s = near[2 * radius - j], near[2 * radius - j + 1]
-                for x in range(W):
-                    v0 = v0s[x]
-                    dj[x] = abs(lrow[x] - (v0 + frac[x] * (v1s[x] - v0)))
-            for x in range(W):
-                if inside[x]:
-                    continue
-                for j in range(n):  # the torch path's clamp to [0, W - 1]
-                    sc = min(max(base[x] - _F(j - radius), _F(0.0)), top)
-                    x0 = min(np.floor(sc), _F(W - 2))
-                    f = sc - x0
-                    v0 = rrow[np.int64(x0)]
-                    diff[j, y - a0, x] = abs(lrow[x] - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
         m = W - 2 * r  # window sums are kept for x in [r, W - r), at index x - r
         cols = np.empty((n + 1, W), np.float32)
         cost = np.empty((n + 1, m), np.float32)
@@ -93,21 +107,27 @@ if AVAILABLE:
                 varrow[x] = _F(INVALID_VARIANCE)
             if y < r or y >= H - r:
                 continue
-            for j in range(n + 1):  # window sums of every plane: column sums slid down, then row sums
-                col = cols[j]
-                if y == max(y0, r):  # the band's first row: the window's full column sums
-                    first = diff[j, y - r - a0]
+            if y == max(y0, r):  # the band's first row: the window's rows, then their full column sums
+                for v in range(y - r, y + r + 1):
+                    _diff_row(lp[v], rp[v], prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside,
+                              near)
+                for j in range(n + 1):
+                    col, row0 = cols[j], ring[(y - r) % slots, j]
                     for x in range(W):
-                        col[x] = first[x]
-                    for v in range(y - r + 1 - a0, y + r + 1 - a0):
-                        plane = diff[j, v]
+                        col[x] = row0[x]
+                    for v in range(y - r + 1, y + r + 1):
+                        plane = ring[v % slots, j]
                         for x in range(W):
                             col[x] += plane[x]
-                else:  # slide down one row: one row enters, one leaves
-                    enter, leave = diff[j, y + r - a0], diff[j, y - r - 1 - a0]
+            else:  # slide down one row: one row enters, one leaves
+                v = y + r
+                _diff_row(lp[v], rp[v], prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside, near)
+                for j in range(n + 1):
+                    col, enter, leave = cols[j], ring[v % slots, j], ring[(y - r - 1) % slots, j]
                     for x in range(W):
                         col[x] += enter[x] - leave[x]
-                c = cost[j]
+            for j in range(n + 1):  # window sums of every plane: row sums of the column sums
+                col, c = cols[j], cost[j]
                 for x in range(m):
                     c[x] = col[x]
                 for u in range(1, 2 * r + 1):
@@ -173,8 +193,7 @@ def match_residual(lp: torch.Tensor, rp: torch.Tensor, prior: torch.Tensor, ok: 
     flt = np.array([cost_floor * area, eps, 1 + uniqueness], dtype=np.float32)
     # the texture threshold on the window sum, as the torch path compares it (float32)
     t_need = np.float32(np.float32(texture * area))
-    parts = max(1, min(threads * 2, h // _MIN_BAND_ROWS))
-    tasks = [(i, y0, y1) for i in range(b) for y0, y1 in _bands(h, parts)]
+    tasks = [(i, y0, y1) for i in range(b) for y0, y1 in _bands(h, -(-h // _BAND_ROWS))]
 
     def task(t: tuple[int, int, int]) -> None:
         i, y0, y1 = t
