@@ -172,9 +172,11 @@ if AVAILABLE:
             E[:] = T
 
     @_jit
-    def _lm(motion, rays, target, cams, gates, codes, ks, iters, eps, tiny, S_out, Hs_out):
-        """Both stages of the LM for every batch item; ``motion`` is updated in place."""
-        B, N = rays.shape[0], rays.shape[1]
+    def lm_item(M, rays, target, cam, gate_huber, gate_late, codes, ks, iters, eps, tiny, S, Hs):
+        """Both stages of the LM for one batch item: ``M (4, 4)`` is updated in place, ``S (N, 16)`` receives the
+        packed state and ``Hs (6, 6)`` the Jacobi-scaled normal matrix at the final state (also called by
+        :mod:`egorefine.motion._solve_numba`, which runs the whole exact solve compiled)."""
+        N = rays.shape[0]
         S_new = np.empty((N, 16))
         H = np.empty((6, 6))
         g = np.empty(6)
@@ -182,35 +184,40 @@ if AVAILABLE:
         E = np.empty((4, 4))
         trial = np.empty((4, 4))
         s = np.empty(6)
-        for b in range(B):
-            M, S = motion[b], S_out[b]
-            lam = 1e-4
-            _reproject(M, rays[b], target[b], cams[b], eps, tiny, S)
-            for stage in range(2):
-                gate, code, k = gates[stage, b], codes[stage], ks[stage]
-                cost = _cost(S, gate, code, k)
-                for _ in range(iters[stage]):
-                    _system(S, gate, code, k, H, g)
-                    _damped_step(H, g, lam, eps, tiny, delta)
-                    _twist_exp(delta, E)
-                    _matmul4(E, M, trial)
-                    _reproject(trial, rays[b], target[b], cams[b], eps, tiny, S_new)
-                    cost_new = _cost(S_new, gate, code, k)
-                    if cost_new < cost and np.isfinite(cost_new):  # keep the step only where the cost drops
-                        M[:] = trial
-                        S[:] = S_new
-                        cost = cost_new
-                        lam *= 0.2
-                    else:
-                        lam *= 5.0
-                    lam = min(max(lam, 1e-9), 1e6)
-            # the scaled normal matrix at the final state, for the quality flag
-            _system(S, gates[1, b], codes[1], ks[1], H, g)
-            _scale(H, eps, tiny, s)
-            for r in range(6):
-                for c in range(6):
-                    Hs_out[b, r, c] = H[r, c] * s[r] * s[c]
+        lam = 1e-4
+        _reproject(M, rays, target, cam, eps, tiny, S)
+        for stage in range(2):
+            gate = gate_huber if stage == 0 else gate_late
+            code, k = codes[stage], ks[stage]
+            cost = _cost(S, gate, code, k)
+            for _ in range(iters[stage]):
+                _system(S, gate, code, k, H, g)
+                _damped_step(H, g, lam, eps, tiny, delta)
+                _twist_exp(delta, E)
+                _matmul4(E, M, trial)
+                _reproject(trial, rays, target, cam, eps, tiny, S_new)
+                cost_new = _cost(S_new, gate, code, k)
+                if cost_new < cost and np.isfinite(cost_new):  # keep the step only where the cost drops
+                    M[:] = trial
+                    S[:] = S_new
+                    cost = cost_new
+                    lam *= 0.2
+                else:
+                    lam *= 5.0
+                lam = min(max(lam, 1e-9), 1e6)
+        # the scaled normal matrix at the final state, for the quality flag
+        _system(S, gate_late, codes[1], ks[1], H, g)
+        _scale(H, eps, tiny, s)
+        for r in range(6):
+            for c in range(6):
+                Hs[r, c] = H[r, c] * s[r] * s[c]
 
+    @_jit
+    def _lm(motion, rays, target, cams, gates, codes, ks, iters, eps, tiny, S_out, Hs_out):
+        """Both stages of the LM for every batch item; ``motion`` is updated in place."""
+        for b in range(rays.shape[0]):
+            lm_item(motion[b], rays[b], target[b], cams[b], gates[0, b], gates[1, b], codes, ks, iters, eps, tiny,
+                    S_out[b], Hs_out[b])
 
 def two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor,
                  gate_huber: torch.Tensor, gate_late: torch.Tensor, *, loss: str, first: int, second: int,

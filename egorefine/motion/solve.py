@@ -59,7 +59,7 @@ from ..core import (
     eps_like,
 )
 from ..geometry import motion_to_twist, twist_to_motion
-from . import _lm_numba
+from . import _lm_numba, _solve_numba
 from .field import motion_field_jacobian
 from .robust import LOSSES, robust_loss, robust_weight
 
@@ -102,7 +102,9 @@ def _check_inputs(
     baseline: torch.Tensor,
     weights: torch.Tensor | None,
     valid_prev: torch.Tensor | None,
+    values: bool = True,
 ) -> None:
+    """Shapes, dtypes and devices; with ``values`` also :func:`_check_values`."""
     dims = check_shape(points_prev, ["B", "N", "2"], "points_prev")
     check_shape(points_next, ["B", "N", "2"], "points_next", dims)
     check_shape(K, ["B", "3", "3"], "K", dims)
@@ -134,6 +136,19 @@ def _check_inputs(
         points_prev, "points_prev", points_next=points_next, disparity_prev=disparity_prev, K=K,
         baseline=baseline, weights=weights, valid_prev=valid_prev,
     )  # fmt: skip
+    if values:
+        _check_values(points_prev, points_next, K, baseline, weights)
+
+
+def _check_values(
+    points_prev: torch.Tensor,
+    points_next: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+    weights: torch.Tensor | None,
+) -> None:
+    """Finite points and ``K``, ``K`` invertible, ``baseline > 0``, weights finite and >= 0 (the compiled solve
+    tests these itself and comes here only when one fails, for the error)."""
     check_finite(points_prev, "points_prev")
     check_finite(points_next, "points_next")
     check_finite(K, "K")
@@ -439,6 +454,18 @@ def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor
                                 scale)
 
 
+# the compiled CPU form of the whole exact solve (False: the torch path with the compiled LM above, for comparisons)
+_COMPILED_SOLVE = True
+
+
+def _compiled_solve(*tensors: torch.Tensor | None) -> bool:
+    """The compiled exact solve applies: the compiled LM does (and is not switched off), numba present and every
+    float input float32/float64 on the CPU without gradient."""
+    given = [t for t in tensors if t is not None]
+    return (_COMPILED_SOLVE and _solve_numba.AVAILABLE and _compiled_lm(*given)
+            and all(t.dtype in (torch.float32, torch.float64) for t in given))
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -509,7 +536,10 @@ def solve_ego_motion(
     >>> res.motion.shape, res.ok.tolist()
     (torch.Size([2, 4, 4]), [True, True])
     """
-    _check_inputs(points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev)
+    _check_inputs(points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev, values=False)
+    compiled = method == "exact" and _compiled_solve(points_prev, points_next, disparity_prev, K, baseline, weights)
+    if not compiled:
+        _check_values(points_prev, points_next, K, baseline, weights)
     check_choice(method, METHODS, "method")
     check_choice(loss, LOSSES, "loss")
     if min_features < 3:
@@ -523,6 +553,15 @@ def solve_ego_motion(
     dtype = points_prev.dtype
     if rcond is None:
         rcond = 1e-9 if dtype == torch.float64 else 1e-6
+    if compiled:  # CPU inference: one compiled call (None: a bad input value, which the checks below raise)
+        out = _solve_numba.solve_exact(
+            points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev, min_features=min_features,
+            loss=loss, scale=scale, ransac_hypotheses=ransac_hypotheses, ransac_threshold=ransac_threshold,
+            iterations=iterations, seed=seed, rcond=rcond, max_spread=_MAX_DISPARITY_SPREAD,
+        )  # fmt: skip
+        if out is not None:
+            return EgoMotion(*out)
+        _check_values(points_prev, points_next, K, baseline, weights)
     damping = eps_like(points_prev)
     K = K.to(dtype)
     B, N, _ = points_prev.shape

@@ -63,6 +63,7 @@ def test_torch_path_when_compiled_does_not_apply(monkeypatch):
     monkeypatch.setattr(_lm_numba, "AVAILABLE", False)
     solve_ego_motion(tr.points_prev, tr.points_next, tr.disparity, tr.K, tr.baseline)
     monkeypatch.setattr(_lm_numba, "AVAILABLE", True)
+    monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)  # else the whole solve runs compiled (_solve_numba)
     with pytest.raises(AssertionError, match="compiled LM"):
         solve_ego_motion(tr.points_prev, tr.points_next, tr.disparity, tr.K, tr.baseline)
 
