@@ -29,6 +29,7 @@ import math
 import numpy as np
 import torch
 
+from ..core import eps_like
 from ..core._jit import AVAILABLE
 from ..core._jit import jit as _jit
 from ..geometry.se3 import _SMALL_ANGLE
@@ -155,10 +156,12 @@ if AVAILABLE:
         return total
 
     @_jit
-    def _ransac(R, w, u, hyp_n, threshold, refits, damping, eps, tiny, x, inl):
+    def _ransac(R, w, u, rounded, threshold, refits, damping, eps, tiny, x, inl):
         """solve._ransac for one item: MSAC over the minimal sets drawn by ``u (hyp, 3)``, then the refits.
 
-        ``hyp_n`` is a 1-element array of the input dtype: ``floor(u * n)`` is rounded as the torch path rounds it.
+        ``rounded`` is a 2-element array of the input dtype, to round as the torch path rounds: the index
+        ``floor(u * n)`` of a draw, and each MSAC cost before it is compared (minimal sets that fit exactly tie in
+        the input dtype; in float64 their residuals' rounding noise would pick another one than the torch path).
         ``x`` receives the twist, ``inl`` the inlier flags (weights = ``w * inl``)."""
         N = R.shape[1]
         order = np.empty(N, np.int64)  # valid features first, in their order
@@ -172,7 +175,7 @@ if AVAILABLE:
             if not w[i] > 0:
                 order[m] = i
                 m += 1
-        hyp_n[0] = n
+        rounded[0] = n
         t2 = threshold * threshold
         H = np.empty((6, 6))
         g = np.empty(6)
@@ -185,7 +188,7 @@ if AVAILABLE:
             H[:] = 0.0
             g[:] = 0.0
             for k in range(3):
-                j = min(int(u[h, k] * hyp_n[0]), max(n - 1, 0))
+                j = min(int(u[h, k] * rounded[0]), max(n - 1, 0))
                 i = order[j]
                 _full_rows(R, i, au, av)
                 for a in range(6):
@@ -194,7 +197,8 @@ if AVAILABLE:
                         H[a, c] += au[a] * au[c] + av[a] * av[c]
             _damped_step(H, g, damping, eps, tiny, X)
             _residual2(R, X, r2)
-            cost = _msac_cost(r2, w, t2)
+            rounded[1] = _msac_cost(r2, w, t2)
+            cost = float(rounded[1])
             if h == 0:
                 best_x[:] = X
             if cost < best_cost:  # the first minimal cost, as argmin (a NaN cost is never taken)
@@ -242,7 +246,7 @@ if AVAILABLE:
 
     @_jit
     def _solve(pp, pn, disp, is_map, height, width, spread, valid, has_valid, K, baseline, weights, has_weights, u,
-               hyp_n, threshold, refits, late_is_w, codes, ks, iters, min_features, rcond, eps, tiny, small2,
+               rounded, threshold, refits, late_is_w, codes, ks, iters, min_features, rcond, eps, tiny, small2,
                motion, twist, w_out, ok, num, rms):
         """The exact solve for every batch item into the output arrays (float64, ok bool, num int64)."""
         B, N = pp.shape[0], pp.shape[1]
@@ -271,7 +275,7 @@ if AVAILABLE:
                 w[i] = (weights[b, i] if has_weights else 1.0) if usable[i] else 0.0
                 d[i] = d[i] / fb  # inverse depth 1/Z = d / (f B)
             _rows(pp[b], pn[b], d, fx, fy, cx, cy, R)
-            _ransac(R, w, u, hyp_n, threshold, refits, eps, eps, tiny, x, inl)
+            _ransac(R, w, u, rounded, threshold, refits, eps, eps, tiny, x, inl)
             for i in range(N):
                 w_in[i] = w[i] if inl[i] else 0.0
                 rays[i, 0], rays[i, 1] = (pp[b, i, 0] - cx) / fx, (pp[b, i, 1] - cy) / fy
@@ -381,9 +385,9 @@ def solve_exact(
     ok, num = np.empty(B, np.bool_), np.empty(B, np.int64)
     if N > 0:
         _solve(pp, pn, disp, is_map, height, width, float(max_spread), valid, valid_prev is not None, Kn, bl, wn,
-               weights is not None, _draws(ransac_hypotheses, seed, dtype), np.empty(1, nd), float(ransac_threshold), 1,
+               weights is not None, _draws(ransac_hypotheses, seed, dtype), np.empty(2, nd), float(ransac_threshold), 1,
                loss == "tukey", codes, ks, np.array([first, iterations - first], np.int64), int(min_features),
-               float(rcond), info.eps, info.tiny, _SMALL_ANGLE**2, motion, twist, w_out, ok, num, rms)
+               float(rcond), eps_like(points_prev), info.tiny, _SMALL_ANGLE**2, motion, twist, w_out, ok, num, rms)
     else:  # no features: the fallback of every item
         motion[:] = np.eye(4)
         twist[:], rms[:], ok[:], num[:] = 0.0, 0.0, False, 0
