@@ -21,7 +21,8 @@ They repeat the torch path's float32 formulas in the same order (see :mod:`egore
 for what each step means), so the decisions agree with it; values may differ in the last bits
 where torch's vectorised kernels fuse a multiply and an add (``lerp``, ``addcmul``): tests compare
 the two paths on rendered sequences. :func:`close_cracks` does the inverse-warp look-ups
-of :func:`egorefine.refine.close_cracks` for the hole pixels in one loop, and :func:`edge_variance`
+of :func:`egorefine.refine.close_cracks` for the hole pixels in one loop (:func:`finish_prediction` the same in
+place, with the refiner's search-range check after it), and :func:`edge_variance`
 the window spreads of :func:`egorefine.refine.correct.edge_variance` in one pass (bit for bit).
 
 Used for float32 CPU tensors that need no gradient when numba is installed (``AVAILABLE``); the
@@ -39,7 +40,7 @@ from ..core._jit import AVAILABLE, Workers
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 
-__all__ = ["AVAILABLE", "hard_splat", "close_cracks", "edge_variance"]
+__all__ = ["AVAILABLE", "hard_splat", "close_cracks", "finish_prediction", "edge_variance"]
 
 _F = np.float32
 # the constants of egorefine.refine.predict, as float32
@@ -271,16 +272,54 @@ if AVAILABLE:
                 _fill_row(y, est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance,
                           disparity, variance, confidence)
 
+    @_jit(inline="always")
+    def _look_up(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, x, y, dv):
+        """close_cracks for hole pixel ``(x, y)`` filled with ``dv``: the inverse-warp look-ups in the keyframe (the
+        formulas of :func:`egorefine.refine.close_cracks`). Returns ``(accepted, disparity, variance)``."""
+        H, W = key_d.shape
+        xf, yf = _F(x), _F(y)
+        base0 = (G[0, 0] * xf + G[0, 1] * yf) + G[0, 2]
+        base1 = (G[1, 0] * xf + G[1, 1] * yf) + G[1, 2]
+        base2 = (G[2, 0] * xf + G[2, 1] * yf) + G[2, 2]
+        ok = True
+        step = _F(0.0)
+        var = _F(0.0)
+        hz = _F(1.0)
+        for _ in range(iterations):
+            h2 = base2 + e[2] * dv
+            hz = max(h2, _MIN)
+            sx = (base0 + e[0] * dv) / hz
+            sy = (base1 + e[1] * dv) / hz
+            inside = (h2 > _MIN) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
+            x0 = min(np.floor(min(max(sx, _F(0.0)), _F(W - 1))), _F(W - 2))
+            y0_ = min(np.floor(min(max(sy, _F(0.0)), _F(H - 1))), _F(H - 2))
+            ax = min(max(sx - x0, _F(0.0)), _F(1.0))
+            ay = min(max(sy - y0_, _F(0.0)), _F(1.0))
+            i, j = np.int64(x0), np.int64(y0_)
+            c0, c1, c2, c3 = key_d[j, i], key_d[j, i + 1], key_d[j + 1, i], key_d[j + 1, i + 1]
+            spread = max(max(c0, c1), max(c2, c3)) - min(min(c0, c1), min(c2, c3))
+            sample_ok = (inside & key_ok[j, i] & key_ok[j, i + 1] & key_ok[j + 1, i] & key_ok[j + 1, i + 1]
+                         & (spread <= surface_tolerance))
+            w0, w1 = (_F(1.0) - ax) * (_F(1.0) - ay), ax * (_F(1.0) - ay)
+            w2, w3 = (_F(1.0) - ax) * ay, ax * ay
+            value = ((w0 * c0 + w1 * c1) + w2 * c2) + w3 * c3
+            var = (((w0 * key_var[j, i] + w1 * key_var[j, i + 1]) + w2 * key_var[j + 1, i])
+                   + w3 * key_var[j + 1, i + 1])
+            new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
+            step = abs(new - dv)
+            ok = ok & sample_ok
+            if sample_ok:
+                dv = new
+        return ok and step <= tolerance, dv, var * (hz * hz) + process_noise
+
     @_jit
     def _close_cracks(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y0, y1,
                       d_in, var_in, valid_in, conf_in, disparity, variance, valid, confidence):
         """close_cracks for rows ``y0:y1`` of one batch item: the prediction's maps (``*_in``) copied to the outputs,
-        and inverse-warp look-ups in the keyframe for its holes (the formulas of
-        :func:`egorefine.refine.close_cracks`). Returns the number of holes."""
-        H, W = key_d.shape
+        and the look-ups in the keyframe for its holes. Returns the number of holes."""
+        W = key_d.shape[1]
         holes = 0
         for y in range(y0, y1):
-            yf = _F(y)
             for x in range(W):
                 disparity[y, x] = d_in[y, x]
                 variance[y, x] = var_in[y, x]
@@ -290,47 +329,38 @@ if AVAILABLE:
                 if valid_in[y, x]:
                     continue
                 holes += 1
-                xf = _F(x)
-                base0 = (G[0, 0] * xf + G[0, 1] * yf) + G[0, 2]
-                base1 = (G[1, 0] * xf + G[1, 1] * yf) + G[1, 2]
-                base2 = (G[2, 0] * xf + G[2, 1] * yf) + G[2, 2]
-                dv = disparity[y, x]
-                ok = True
-                step = _F(0.0)
-                var = _F(0.0)
-                hz = _F(1.0)
-                for _ in range(iterations):
-                    h2 = base2 + e[2] * dv
-                    hz = max(h2, _MIN)
-                    sx = (base0 + e[0] * dv) / hz
-                    sy = (base1 + e[1] * dv) / hz
-                    inside = (h2 > _MIN) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
-                    x0 = min(np.floor(min(max(sx, _F(0.0)), _F(W - 1))), _F(W - 2))
-                    y0_ = min(np.floor(min(max(sy, _F(0.0)), _F(H - 1))), _F(H - 2))
-                    ax = min(max(sx - x0, _F(0.0)), _F(1.0))
-                    ay = min(max(sy - y0_, _F(0.0)), _F(1.0))
-                    i, j = np.int64(x0), np.int64(y0_)
-                    c0, c1, c2, c3 = key_d[j, i], key_d[j, i + 1], key_d[j + 1, i], key_d[j + 1, i + 1]
-                    spread = max(max(c0, c1), max(c2, c3)) - min(min(c0, c1), min(c2, c3))
-                    sample_ok = (inside & key_ok[j, i] & key_ok[j, i + 1] & key_ok[j + 1, i] & key_ok[j + 1, i + 1]
-                                 & (spread <= surface_tolerance))
-                    w0, w1 = (_F(1.0) - ax) * (_F(1.0) - ay), ax * (_F(1.0) - ay)
-                    w2, w3 = (_F(1.0) - ax) * ay, ax * ay
-                    value = ((w0 * c0 + w1 * c1) + w2 * c2) + w3 * c3
-                    var = (((w0 * key_var[j, i] + w1 * key_var[j, i + 1]) + w2 * key_var[j + 1, i])
-                           + w3 * key_var[j + 1, i + 1])
-                    new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
-                    step = abs(new - dv)
-                    ok = ok & sample_ok
-                    if sample_ok:
-                        dv = new
-                if ok and step <= tolerance:
-                    v = var * (hz * hz) + process_noise
+                ok, dv, v = _look_up(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance,
+                                     process_noise, x, y, disparity[y, x])
+                if ok:
                     disparity[y, x] = dv
                     variance[y, x] = v
                     valid[y, x] = True
                     confidence[y, x] = _F(1.0) / (_F(1.0) + v)
         return holes
+
+    @_jit
+    def _finish(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, low, high,
+                y0, y1, disparity, variance, valid, confidence):
+        """Rows ``y0:y1`` of one batch item's prediction, in place: its holes' look-ups in the keyframe (when
+        ``iterations`` > 0), then values outside ``[low, high)`` made not valid (confidence 0)."""
+        W = key_d.shape[1]
+        for y in range(y0, y1):
+            drow, vrow, crow = disparity[y], valid[y], confidence[y]
+            if iterations > 0:
+                for x in range(W):
+                    if vrow[x]:
+                        continue
+                    ok, dv, v = _look_up(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance,
+                                         process_noise, x, y, drow[x])
+                    if ok:
+                        drow[x] = dv
+                        variance[y, x] = v
+                        vrow[x] = True
+                        crow[x] = _F(1.0) / (_F(1.0) + v)
+            for x in range(W):
+                keep = vrow[x] & (drow[x] >= low) & (drow[x] < high)
+                vrow[x] = keep
+                crow[x] = crow[x] if keep else _F(0.0)
 
     @_jit
     def _edge_variance(d, valid, radius, y0, y1, out):
@@ -491,6 +521,28 @@ def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.T
     if sum(Workers(threads).map(band, [(i, rows) for i in range(B) for rows in bands])) == 0:
         return None
     return tuple(torch.from_numpy(out) for out in outs)
+
+
+def finish_prediction(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.Tensor,
+                      confidence: torch.Tensor, key_disparity: torch.Tensor, key_variance: torch.Tensor,
+                      key_valid: torch.Tensor, G: torch.Tensor, e: torch.Tensor, iterations: int, tolerance: float,
+                      surface_tolerance: float, process_noise: float, low: float, high: float,
+                      threads: int | None = None) -> None:
+    """The refiner's step after the splat, in place on the prediction's float32 CPU maps ``(B, H, W)`` (``valid``
+    bool): :func:`close_cracks`' look-ups for the holes (``iterations`` 0: none), then values outside
+    ``[low, high)`` not valid, with confidence 0. One pass, no copy of the maps."""
+    B, H, W = disparity.shape
+    threads = max(1, threads or torch.get_num_threads())
+    maps = [t.numpy() for t in (disparity, variance, valid, confidence)]
+    kd, kv, kok = (t.contiguous().numpy() for t in (key_disparity, key_variance, key_valid))
+    Gn, en = G.numpy(), e.numpy()
+    args = (int(iterations), _F(tolerance), _F(surface_tolerance), _F(process_noise), _F(low), _F(high))
+
+    def band(job: tuple[int, tuple[int, int]]) -> None:
+        i, (y0, y1) = job
+        _finish(kd[i], kv[i], kok[i], Gn[i], en[i], *args, y0, y1, *(m[i] for m in maps))
+
+    Workers(threads).map(band, [(i, rows) for i in range(B) for rows in _bands(H, threads)])
 
 
 def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int,

@@ -30,9 +30,11 @@ from ..core import check_shape
 from . import _predict_numba
 from .predict import Prediction, _pixel_motion
 
-__all__ = ["close_cracks"]
+__all__ = ["close_cracks"]  # (and the refiner's private finish_prediction)
 
 _MIN_DEPTH_RATIO = 1e-3
+# close_cracks' defaults (the refiner's settings)
+_ITERATIONS, _TOLERANCE, _SURFACE_TOLERANCE = 2, 0.1, 1.0
 
 
 def close_cracks(
@@ -44,9 +46,9 @@ def close_cracks(
     K: torch.Tensor,
     baseline: torch.Tensor,
     process_noise: float = 0.0,
-    iterations: int = 2,
-    tolerance: float = 0.1,
-    surface_tolerance: float = 1.0,
+    iterations: int = _ITERATIONS,
+    tolerance: float = _TOLERANCE,
+    surface_tolerance: float = _SURFACE_TOLERANCE,
 ) -> Prediction:
     """Hole pixels of ``prediction`` that the keyframe saw become valid, with values looked up in it.
 
@@ -148,3 +150,43 @@ def close_cracks(
         valid.view(-1)[at] = True
         confidence = torch.where(valid, 1.0 / (1.0 + variance), torch.zeros_like(variance))
     return prediction._replace(disparity=disparity, variance=variance, valid=valid, confidence=confidence)
+
+
+def finish_prediction(
+    prediction: Prediction,
+    key_disparity: torch.Tensor,
+    key_variance: torch.Tensor,
+    key_valid: torch.Tensor,
+    motion: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+    process_noise: float,
+    fill_cracks: bool,
+    valid_range: tuple[float, float],
+) -> Prediction:
+    """The refiner's step after the splat: :func:`close_cracks` (when ``fill_cracks``), then predicted values outside
+    ``valid_range = [low, high)`` made not valid, with confidence 0 (the next stereo run could not verify them).
+
+    ``prediction`` must be the caller's own, fresh from :func:`~egorefine.refine.predict_disparity`: float32 CPU
+    maps without gradient are changed in place, in one compiled pass (no copies of the maps, no full-map torch op);
+    other maps go through :func:`close_cracks` and torch.
+    """
+    low, high = valid_range
+    maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
+    if (_predict_numba.AVAILABLE and key_disparity.device.type == "cpu" and maps[2].dtype == torch.bool
+            and not any(t.requires_grad for t in maps)
+            and all(t.dtype == torch.float32 and t.is_contiguous() for t in (key_disparity, key_variance, *maps[:2],
+                                                                             maps[3]))):
+        _, _, G, e = _pixel_motion(motion, K, baseline)
+        valid = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
+        _predict_numba.finish_prediction(
+            *(t[:, 0] for t in maps), key_disparity.detach()[:, 0], key_variance.detach()[:, 0], valid[:, 0],
+            G.detach().to(torch.float32), e.detach().to(torch.float32), _ITERATIONS if fill_cracks else 0, _TOLERANCE,
+            _SURFACE_TOLERANCE, process_noise, low, high,
+        )
+        return prediction
+    if fill_cracks:
+        prediction = close_cracks(prediction, key_disparity, key_variance, key_valid, motion, K, baseline,
+                                  process_noise=process_noise)
+    in_range = (prediction.disparity >= low) & (prediction.disparity < high)
+    return prediction._replace(valid=prediction.valid & in_range, confidence=prediction.confidence * in_range)

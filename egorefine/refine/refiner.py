@@ -40,7 +40,7 @@ from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
 from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_regions
 from .correct import correct_disparity, edge_variance
-from .cracks import close_cracks
+from .cracks import finish_prediction
 from .predict import Prediction, predict_disparity
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
@@ -396,7 +396,8 @@ class EgoMotionRefiner(nn.Module):
         if prev.device != left.device:
             raise StateError(f"state: on {prev.device}, but left is on {left.device}; frames may not change device")
 
-    def _needs_stereo(self, frame: int, motion_ok: torch.Tensor, coverage: torch.Tensor, conf: torch.Tensor) -> bool:
+    def _needs_stereo(self, frame: int, motion_ok: torch.Tensor, coverage: torch.Tensor | None,
+                      conf: torch.Tensor | None) -> bool:
         if frame % self.verify_every == 0:
             return True
         # One host sync per frame: the schedule decides whether a whole matcher call happens.
@@ -498,18 +499,18 @@ class EgoMotionRefiner(nn.Module):
             mode=self.splat,
             process_noise=self.process_noise * steps,
         )
-        if self.fill_cracks:
-            # holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it
-            pred = close_cracks(pred, state.key_disparity, state.key_variance, state.key_valid, key_motion, K, baseline,
-                                process_noise=self.process_noise * steps)
+        # Holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it (fill_cracks).
         # A predicted value outside the stereo search range cannot be verified by the next stereo run. On the test
         # scenes such values are mostly a stereo outlier magnified by the approach (a mismatched patch at 54 px in a
         # corridor whose truth there is 11 px grows past 100 px within four frames forward, and its large footprint
         # wins the z-buffer): they are not valid, and carry no confidence.
-        in_range = (pred.disparity >= self.min_disparity) & (pred.disparity < self.max_disparity)
-        pred = pred._replace(valid=pred.valid & in_range, confidence=pred.confidence * in_range)
-        coverage = pred.valid.flatten(1).float().mean(1)
-        conf = pred.confidence.flatten(1).mean(1)
+        pred = finish_prediction(pred, state.key_disparity, state.key_variance, state.key_valid, key_motion, K,
+                                 baseline, self.process_noise * steps, self.fill_cracks,
+                                 (self.min_disparity, self.max_disparity))
+        coverage = conf = None
+        if self.adaptive:
+            coverage = pred.valid.flatten(1).float().mean(1)
+            conf = pred.confidence.flatten(1).mean(1)
         stereo_ran = self._needs_stereo(frame, ok, coverage, conf)
 
         disparity, variance, valid, outliers = pred.disparity, pred.variance, pred.valid, state.outlier_count

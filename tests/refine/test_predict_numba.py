@@ -8,6 +8,8 @@ import torch
 
 from egorefine.data import render_sequence
 from egorefine.refine import _predict_numba, close_cracks, predict_disparity
+from egorefine.refine.cracks import finish_prediction
+from egorefine.refine.predict import Prediction
 
 needs_numba = pytest.mark.skipif(not _predict_numba.AVAILABLE, reason="numba not installed")
 
@@ -124,6 +126,32 @@ def test_compiled_crack_closing_equals_torch_path(scene, monkeypatch):
     torch.testing.assert_close(a.variance, r.variance, atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(a.confidence, r.confidence, atol=1e-5, rtol=0)
     assert torch.equal(a.hole, pred.hole)
+
+
+@needs_numba
+@pytest.mark.parametrize("fill", [True, False])
+def test_compiled_finish_equals_torch_path(scene, monkeypatch, fill):
+    # the refiner's step after the splat: cracks closed (or not), values outside the range made not valid; the
+    # compiled path works in place on the prediction it is given
+    d, motion, K, b, var, valid = scene
+    pred = predict_disparity(d, motion, K, b, variance=var, valid=valid)
+    low, high = pred.disparity[pred.valid].quantile(torch.tensor([0.1, 0.9])).tolist()  # cuts both ends
+    assert ((pred.disparity < low) & pred.valid).any() and ((pred.disparity >= high) & pred.valid).any()
+
+    def run():
+        fresh = Prediction(*(t.clone() for t in pred))
+        return fresh, finish_prediction(fresh, d, var, valid, motion, K, b, 0.02, fill, (low, high))
+
+    (given, a), (_, r) = _both(monkeypatch, run)
+    assert a.disparity is given.disparity and a.valid is given.valid  # in place
+    assert torch.equal(a.valid, r.valid)
+    assert not ((a.disparity < low) | (a.disparity >= high))[a.valid].any()
+    assert (a.confidence[~a.valid] == 0).all()
+    closed = a.valid & ~pred.valid
+    assert bool(closed.any()) == fill
+    torch.testing.assert_close(a.disparity, r.disparity, atol=1e-4, rtol=0)
+    torch.testing.assert_close(a.variance, r.variance, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(a.confidence, r.confidence, atol=1e-5, rtol=0)
 
 
 @needs_numba
