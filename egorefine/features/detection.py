@@ -33,6 +33,7 @@ from ..core import (
     eps_like,
     to_grey,
 )
+from . import _detect_numba
 
 __all__ = ["detect", "Detector", "replenish", "corner_response"]
 
@@ -264,6 +265,11 @@ def _detect(
     k: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     b, _, h, w = image.shape
+    if _compiled_applies(image, response):
+        # the same steps compiled (egorefine.features._detect_numba): float32 CPU inference, same keypoints
+        return _detect_numba.detect_compiled(
+            to_grey(image), n, grid, nms_radius, quality, min_response, border, subpixel
+        )
     resp = corner_response(image, response, k)  # (B, 1, H, W)
     # Non-maximum suppression by comparison with a max-pooled copy.
     pooled = _max_filter(resp, nms_radius)
@@ -313,6 +319,23 @@ def _detect(
     weights = valid.to(resp.dtype)
     kp = kp * weights.unsqueeze(-1)
     return kp, weights
+
+
+# the compiled CPU form of the Shi-Tomasi detection (False: always the torch path, for comparisons)
+_COMPILED = True
+
+
+def _compiled_applies(image: torch.Tensor, response: str) -> bool:
+    """The compiled detection applies: numba present, Shi-Tomasi, a float32 CPU image of 4 x 4 pixels or more
+    (kornia's reflected 7x7 blur needs 4; smaller images keep the torch path's error)."""
+    return (
+        _COMPILED
+        and _detect_numba.AVAILABLE
+        and response == "gftt"
+        and image.device.type == "cpu"
+        and image.dtype == torch.float32
+        and min(image.shape[-2:]) >= 4
+    )
 
 
 class Detector(torch.nn.Module):
@@ -424,9 +447,13 @@ def replenish(
     cand = cand.to(keypoints.dtype)
     live = weights > 0
     with torch.no_grad():
-        d2 = (cand.unsqueeze(2) - keypoints.detach().unsqueeze(1)).pow(2).sum(-1)  # (B, 2M, M)
-        d2 = torch.where(live.unsqueeze(1), d2, torch.full_like(d2, float("inf")))
-        usable = (cand_w > 0) & (d2.amin(dim=2) >= min_distance**2)
+        if _COMPILED and _detect_numba.AVAILABLE and keypoints.device.type == "cpu" and cand.dtype == torch.float32:
+            # the same float32 distances without the (B, 2M, M) map
+            usable = _detect_numba.usable_compiled(cand, cand_w, keypoints, live, min_distance)
+        else:
+            d2 = (cand.unsqueeze(2) - keypoints.detach().unsqueeze(1)).pow(2).sum(-1)  # (B, 2M, M)
+            d2 = torch.where(live.unsqueeze(1), d2, torch.full_like(d2, float("inf")))
+            usable = (cand_w > 0) & (d2.amin(dim=2) >= min_distance**2)
         # Usable candidates first, in detection order (stable sort keeps the order).
         order = torch.sort(usable.to(torch.uint8), dim=1, descending=True, stable=True).indices
         n_usable = usable.sum(dim=1, keepdim=True)
