@@ -248,7 +248,7 @@ if AVAILABLE:
     def _solve(pp, pn, disp, is_map, height, width, spread, valid, has_valid, K, baseline, weights, has_weights, u,
                rounded, threshold, refits, late_is_w, codes, ks, iters, min_features, rcond, eps, tiny, small2,
                motion, twist, w_out, ok, num, rms):
-        """The exact solve for every batch item into the output arrays (float64, ok bool, num int64)."""
+        """The exact solve for every batch item into the output arrays (the input dtype, ok bool, num int64)."""
         B, N = pp.shape[0], pp.shape[1]
         d = np.empty(N)
         usable = np.empty(N, np.bool_)
@@ -262,6 +262,8 @@ if AVAILABLE:
         S = np.empty((N, 16))
         Hs = np.empty((6, 6))
         cam = np.empty(4)
+        M = np.empty((4, 4))  # the motion, in float64 whatever the output dtype
+        tw = np.empty(6)
         for b in range(B):
             fx, fy, cx, cy = float(K[b, 0, 0]), float(K[b, 1, 1]), float(K[b, 0, 2]), float(K[b, 1, 2])
             if is_map:
@@ -283,12 +285,12 @@ if AVAILABLE:
                 target[i, 0], target[i, 1] = pn[b, i, 0], pn[b, i, 1]
             for a in range(6):  # start: twist_to_motion(twist) = exp(-twist), a non-finite component taken as 0
                 x[a] = -x[a] if np.isfinite(x[a]) else 0.0
-            M = motion[b]
             _twist_exp(x, M)
             cam[0], cam[1], cam[2], cam[3] = fx, fy, cx, cy
             late = w if late_is_w else w_in
             lm_item(M, rays, target, cam, w_in, late, codes, ks, iters, eps, tiny, S, Hs)
-            # outputs: the last kernel's weights, the reprojection RMS, the twist and the quality flag
+            # outputs: the last kernel's weights (counted as stored, in the output dtype), the reprojection RMS, the
+            # twist and the quality flag
             count, wsum, sq = 0, 0.0, 0.0
             wo = w_out[b]
             for i in range(N):
@@ -298,23 +300,28 @@ if AVAILABLE:
                     count += 1
                 wsum += wo[i]
                 sq += wo[i] * r * r
-            rms[b] = math.sqrt(sq / max(wsum, eps))
-            _twist_of(M, tiny, small2, twist[b])
+            rms_b = math.sqrt(sq / max(wsum, eps))
+            _twist_of(M, tiny, small2, tw)
             ev = np.linalg.eigvalsh(Hs)
-            finite = np.isfinite(rms[b])
+            finite = np.isfinite(rms_b)
             for a in range(6):
-                finite = finite and np.isfinite(twist[b, a]) and np.isfinite(ev[a])
+                finite = finite and np.isfinite(tw[a]) and np.isfinite(ev[a])
             good = count >= min_features and ev[0] > rcond * max(ev[5], tiny) and finite
             ok[b] = good
-            num[b] = count if good else 0
-            if not good:  # fallback: identity, zero twist, no inliers
-                M[:] = 0.0
-                for a in range(4):
-                    M[a, a] = 1.0
+            if good:
+                num[b], rms[b] = count, rms_b
+                for a in range(6):
+                    twist[b, a] = tw[a]
+                for r in range(4):
+                    for c in range(4):
+                        motion[b, r, c] = M[r, c]
+            else:  # fallback: identity, zero twist, no inliers
+                num[b], rms[b] = 0, 0.0
                 twist[b, :] = 0.0
                 wo[:] = 0.0
-                rms[b] = 0.0
-
+                motion[b, :, :] = 0.0
+                for a in range(4):
+                    motion[b, a, a] = 1.0
 
 _DRAWS: dict[tuple[int, int, torch.dtype], np.ndarray] = {}
 
@@ -381,17 +388,16 @@ def solve_exact(
     codes = np.array([_lm_numba._LOSS_CODES["huber"], _lm_numba._LOSS_CODES[loss]], np.int64)
     ks = np.array([_KERNEL["huber"] * scale, _KERNEL[loss] * scale])
     first = iterations // 2
-    motion, twist, w_out, rms = np.empty((B, 4, 4)), np.empty((B, 6)), np.empty((B, N)), np.empty(B)
-    ok, num = np.empty(B, np.bool_), np.empty(B, np.int64)
+    motion, twist, w_out, rms = (torch.empty(shape, dtype=dtype) for shape in ((B, 4, 4), (B, 6), (B, N), (B,)))
+    ok, num = torch.empty(B, dtype=torch.bool), torch.empty(B, dtype=torch.long)
     if N > 0:
         _solve(pp, pn, disp, is_map, height, width, float(max_spread), valid, valid_prev is not None, Kn, bl, wn,
                weights is not None, _draws(ransac_hypotheses, seed, dtype), np.empty(2, nd), float(ransac_threshold), 1,
                loss == "tukey", codes, ks, np.array([first, iterations - first], np.int64), int(min_features),
-               float(rcond), eps_like(points_prev), info.tiny, _SMALL_ANGLE**2, motion, twist, w_out, ok, num, rms)
+               float(rcond), eps_like(points_prev), info.tiny, _SMALL_ANGLE**2, motion.numpy(), twist.numpy(),
+               w_out.numpy(), ok.numpy(), num.numpy(), rms.numpy())
     else:  # no features: the fallback of every item
-        motion[:] = np.eye(4)
-        twist[:], rms[:], ok[:], num[:] = 0.0, 0.0, False, 0
-    out = (motion, twist, w_out, rms)
-    motion, twist, w_out, rms = (torch.from_numpy(a).to(dtype) for a in out)
-    return motion, twist, w_out, torch.from_numpy(ok), torch.from_numpy(num), rms
-
+        motion[:] = torch.eye(4, dtype=dtype)
+        for t in (twist, rms, ok, num):
+            t.zero_()
+    return motion, twist, w_out, ok, num, rms

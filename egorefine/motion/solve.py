@@ -32,6 +32,10 @@ Every result carries a per-item quality flag ``ok``: too few features (fewer tha
 singular system (features on one 3-D line, all weights zero) or a non-finite solution
 give ``ok = False`` and the identity motion instead of NaN, without raising.
 
+On the CPU without gradient (float32/float64), ``"exact"`` runs as one compiled call per batch
+(:mod:`egorefine.motion._solve_numba`, the same steps in float64); ``solve._COMPILED_SOLVE = False``
+gives the torch path, which stays the reference and serves GPU tensors and autograd.
+
 The normal equations are Jacobi-scaled (unit diagonal) and damped by a small multiple of
 the identity (the dtype's epsilon) before a batched Cholesky factorisation, so every
 solve is finite; the flag comes from the reciprocal condition number of the scaled
