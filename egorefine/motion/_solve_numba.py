@@ -331,6 +331,8 @@ def _draws(hypotheses: int, seed: int, dtype: torch.dtype) -> np.ndarray:
     ``seed`` (shared by all batch items), computed once per ``(hypotheses, seed, dtype)``."""
     key = (hypotheses, seed, dtype)
     if key not in _DRAWS:
+        if len(_DRAWS) >= 64:  # a caller that changes the seed on every call must not grow it without bound
+            _DRAWS.clear()
         gen = torch.Generator().manual_seed(seed)
         _DRAWS[key] = torch.rand(hypotheses, 3, generator=gen, dtype=dtype).numpy()
     return _DRAWS[key]
