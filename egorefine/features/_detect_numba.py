@@ -19,13 +19,16 @@ root by one ulp), so the kernels call the same MKL function (:class:`_Setup`). T
 normalised strength and the round-robin key (``strength - rank``) are the same float32 operations,
 so every decision is the torch path's. Exact ties (equal strengths in a cell, or equal keys: the key
 ``strength - rank`` keeps ~7 digits, and at 1000 slots one or two pairs of a 640x480 frame tie) are
-ordered by ``torch.topk`` itself, called on the torch path's own row for just the cells or the key
-array that hold one, since its order of equal values is its algorithm's. The sub-pixel step
-(Foerstner's corner point, :func:`egorefine.features.detection._gradient_offsets`) repeats its float32
-formulas per keypoint, its exponentials with MKL's vector exp (torch's ``exp``) and its 49-term window
-sums in the order of torch's CPU sum (eight-lane vectors, :func:`_sum49`). Where torch's library
-does not export MKL's functions, or its sum takes another order (:class:`_Setup` checks both once per
-process), the kernels use ``np.sqrt`` / ``np.exp`` and the same order, and agree to float rounding.
+ordered as ``torch.topk`` orders them, which is its algorithm's business: for the cells that hold one,
+``torch.topk`` on the torch path's row of that cell; for the keys, where topk takes libstdc++'s
+``std::partial_sort`` (k * 64 <= length: the default 8x8 grid with full cells) the same heap select and
+heap sort repeated (:func:`_top_keys`), else ``torch.topk`` on the torch path's key array. The
+sub-pixel step (Foerstner's corner point, :func:`egorefine.features.detection._gradient_offsets`)
+repeats its float32 formulas per keypoint, its exponentials with MKL's vector exp (torch's ``exp``)
+and its 49-term window sums in the order of torch's CPU sum (eight-lane vectors, :func:`_refine`).
+:class:`_Setup` checks once per process that torch's library exports MKL's functions and that they,
+the sum order and the partial sort reproduce torch's on probes; where one does not, the kernels use
+``np.sqrt`` / ``np.exp`` (then positions agree to float rounding) or ``torch.topk`` itself.
 
 ``AVAILABLE`` is False when numba cannot be imported; :func:`egorefine.features.detect` then takes
 the torch path, which stays the reference for GPU tensors, autograd, float64 and Harris.
@@ -93,6 +96,7 @@ class _Setup:
         self.done = False
         self.vml = False  # MKL's sqrt/exp reproduce torch's
         self.sum8 = False  # torch's float32 sum of 49 values is the eight-lane order (_sum8)
+        self.heap = False  # torch.topk's partial sort is libstdc++'s (_partial_sort)
         self.local = None  # MKL's mkl_set_num_threads_local
         self._keep: list = []
 
@@ -126,6 +130,13 @@ class _Setup:
         rows = torch.randn(256, 49, generator=g)
         sums = rows.sum(-1).numpy()
         self.sum8 = all(_sum8(r) == t for r, t in zip(rows.numpy(), sums, strict=True))
+        if AVAILABLE:
+            self.heap = True
+            for size, k in ((64000, 1000), (6400, 100), (129, 2)):  # values with many ties
+                vals = torch.randint(0, 50, (size,), generator=g).float()
+                vals[torch.rand(size, generator=g) < 0.5] = -3.0
+                top = vals.topk(k).indices.numpy()
+                self.heap &= bool(np.array_equal(_partial_sort(vals.numpy().copy(), k), top))
         self.done = True
 
 
@@ -375,15 +386,14 @@ if AVAILABLE:
             if val[i] >= thr:
                 m += 1
         flat = np.empty(m, np.int64)
-        neg = np.empty(m, np.float32)
+        strength = np.empty(m, np.float32)
         half = _F(0.5)
         j = 0
         for i in range(idx.shape[0]):
             if val[i] >= thr:
                 flat[j] = idx[i]
-                neg[j] = -(half * val[i] / peak)
+                strength[j] = half * val[i] / peak
                 j += 1
-        order = np.argsort(neg, kind="mergesort")  # strength, descending; stable: raster order for ties
         per = np.zeros(ncell + 1, np.int64)
         cell = np.empty(m, np.int64)
         for i in range(m):
@@ -396,11 +406,26 @@ if AVAILABLE:
         start = per[:ncell].copy()
         out_flat = np.empty(m, np.int64)
         out_s = np.empty(m, np.float32)
-        for o in order:  # a stable counting sort by cell keeps the strength order in every cell
-            c = cell[o]
-            out_flat[start[c]] = flat[o]
-            out_s[start[c]] = -neg[o]
+        for i in range(m):  # by cell, raster order kept
+            c = cell[i]
+            out_flat[start[c]] = flat[i]
+            out_s[start[c]] = strength[i]
             start[c] += 1
+        for c in range(ncell):  # then by strength in each cell, stable sorts: raster order for ties
+            if per[c + 1] - per[c] > 64:
+                o = np.argsort(-out_s[per[c]:per[c + 1]], kind="mergesort") + per[c]
+                out_s[per[c]:per[c + 1]] = out_s[o]
+                out_flat[per[c]:per[c + 1]] = out_flat[o]
+                continue
+            for i in range(per[c] + 1, per[c + 1]):
+                v, f = out_s[i], out_flat[i]
+                j = i
+                while j > per[c] and out_s[j - 1] < v:
+                    out_s[j] = out_s[j - 1]
+                    out_flat[j] = out_flat[j - 1]
+                    j -= 1
+                out_s[j] = v
+                out_flat[j] = f
         tied = np.zeros(ncell, np.bool_)
         for c in range(ncell):
             for j in range(per[c], min(per[c + 1], per[c] + kc + 1) - 1):
@@ -408,85 +433,203 @@ if AVAILABLE:
                     tied[c] = True
         return out_flat, out_s, per, tied
 
+    @_jit(inline="always")
+    def _adjust_heap(val, idx, hole, length, v, j):
+        """libstdc++'s ``__adjust_heap`` with ``comp(a, b) = a > b`` on ``val`` (``idx`` moves along): sift the
+        hole at ``hole`` down, then push ``(v, j)`` up from where it ends."""
+        top = hole
+        child = hole
+        while child < (length - 1) // 2:
+            child = 2 * (child + 1)
+            if val[child] > val[child - 1]:
+                child -= 1
+            val[hole] = val[child]
+            idx[hole] = idx[child]
+            hole = child
+        if (length & 1) == 0 and child == (length - 2) // 2:
+            child = 2 * (child + 1)
+            val[hole] = val[child - 1]
+            idx[hole] = idx[child - 1]
+            hole = child - 1
+        parent = (hole - 1) // 2
+        while hole > top and val[parent] > v:
+            val[hole] = val[parent]
+            idx[hole] = idx[parent]
+            hole = parent
+            parent = (hole - 1) // 2
+        val[hole] = v
+        idx[hole] = j
+
     @_jit
-    def _keys(strength, per, kc, n):
+    def _heap_sort_top(val, idx, k):
+        """libstdc++'s ``make_heap`` of ``val[:k]`` (``idx`` moves along), under ``a > b``."""
+        if k >= 2:
+            parent = (k - 2) // 2
+            while True:
+                _adjust_heap(val, idx, parent, k, val[parent], idx[parent])
+                if parent == 0:
+                    break
+                parent -= 1
+
+    @_jit
+    def _partial_sort(val, k):
+        """The indices ``torch.topk(val, k)`` returns where it takes ``std::partial_sort`` (``64 k <= len(val)``):
+        libstdc++'s heap select and heap sort of (value, index) pairs under ``a > b``, which fixes the order of
+        equal values. ``val`` is overwritten."""
+        idx = np.arange(val.shape[0])
+        _heap_sort_top(val, idx, k)
+        for i in range(k, val.shape[0]):  # heap select
+            if val[i] > val[0]:
+                _adjust_heap(val, idx, 0, k, val[i], idx[i])
+        _sort_heap(val, idx, k)
+        return idx[:k].copy()
+
+    @_jit
+    def _sort_heap(val, idx, k):
+        """libstdc++'s ``sort_heap`` of the heap ``val[:k]``: best first."""
+        last = k
+        while last > 1:
+            last -= 1
+            v, j = val[last], idx[last]
+            val[last], idx[last] = val[0], idx[0]
+            _adjust_heap(val, idx, 0, last, v, j)
+
+    @_jit
+    def _top_keys(keys, slot, n, invalid):
+        """:func:`_partial_sort` of the torch path's key array (``invalid`` but ``keys`` at ``slot``, ascending)
+        without building it: past the first ``n`` entries an invalid key never enters the heap. Returns the
+        positions in ``keys`` of the real keys among the first ``n``, in torch.topk's order."""
+        val = np.full(n, invalid, np.float32)
+        idx = np.arange(n)
+        m = keys.shape[0]
+        j = 0
+        while j < m and slot[j] < n:
+            val[slot[j]] = keys[j]
+            j += 1
+        _heap_sort_top(val, idx, n)
+        for i in range(j, m):
+            if keys[i] > val[0]:
+                _adjust_heap(val, idx, 0, n, keys[i], slot[i])
+        _sort_heap(val, idx, n)
+        count = 0
+        for i in range(n):
+            if val[i] > invalid:
+                count += 1
+        out = np.searchsorted(slot, idx[:count])  # slot ascending: the entry holding each chosen index
+        return out
+
+    @_jit
+    def _keys(strength, per, kc):
         """The round-robin key ``strength - rank`` (float32) of every cell's first ``kc`` candidates, in the index
-        order of the torch path's ``(cell, rank)`` key array (``slot``: that index; ``src``: the candidate), and
-        the order that sorts them (key descending, ties in index order). Returns ``(keys, slot, src, order,
-        tied)``; ``tied``: two equal keys among the first ``n + 1`` in that order."""
+        order of the torch path's ``(cell, rank)`` key array: ``(keys, slot, src, rank)``, ``slot`` the index
+        there, ``src`` the candidate."""
         ncell = per.shape[0] - 1
         total = 0
         for c in range(ncell):
             total += min(per[c + 1] - per[c], kc)
         keys = np.empty(total, np.float32)
-        neg = np.empty(total, np.float32)
         slot = np.empty(total, np.int64)
         src = np.empty(total, np.int64)
+        rank = np.empty(total, np.int64)
         j = 0
         for c in range(ncell):
             for r in range(min(per[c + 1] - per[c], kc)):
-                key = strength[per[c] + r] - _F(r)
-                keys[j] = key
-                neg[j] = -key
+                keys[j] = strength[per[c] + r] - _F(r)
                 slot[j] = c * kc + r
                 src[j] = per[c] + r
+                rank[j] = r
                 j += 1
-        order = np.argsort(neg, kind="mergesort")
-        tied = False
-        for j in range(min(n + 1, total) - 1):
-            if keys[order[j]] == keys[order[j + 1]]:
-                tied = True
-        return keys, slot, src, order, tied
+        return keys, slot, src, rank
+
+    @_jit
+    def _sorted_keys(keys, rank, n):
+        """The order that sorts ``keys`` descending (ties in index order), round by round: a key ``strength -
+        rank`` of rank ``r`` lies in ``[-r, 0.5 - r]``, so only the at most one-per-cell keys of a rank need
+        sorting. Returns ``(order, exact)``; ``exact`` is False where two of the first ``n + 1`` tie (torch.topk
+        orders those by its algorithm) or the ranks overlap (a negative strength)."""
+        m = keys.shape[0]
+        rounds = 0
+        for j in range(m):
+            rounds = max(rounds, rank[j] + 1)
+        per = np.zeros(rounds + 1, np.int64)
+        for j in range(m):
+            per[rank[j] + 1] += 1
+        for r in range(rounds):
+            per[r + 1] += per[r]
+        start = per[:rounds].copy()
+        order = np.empty(m, np.int64)
+        for j in range(m):  # by rank; cell order within a rank
+            r = rank[j]
+            order[start[r]] = j
+            start[r] += 1
+        done = 0
+        for r in range(rounds):  # stable insertion sort of each rank by key, as far as the first n + 1 reach
+            if done > n:
+                break
+            for i in range(per[r] + 1, per[r + 1]):
+                o = order[i]
+                v = keys[o]
+                j = i
+                while j > per[r] and keys[order[j - 1]] < v:
+                    order[j] = order[j - 1]
+                    j -= 1
+                order[j] = o
+            done = per[r + 1]
+        exact = True
+        for j in range(done - 1):
+            a, b = keys[order[j]], keys[order[j + 1]]
+            if a < b or (a == b and j < n):
+                exact = False
+        if done > 0:
+            least = keys[order[done - 1]]
+            for j in range(done, m):  # the ranks left unsorted lie below: their order does not matter
+                if keys[order[j]] > least:
+                    exact = False
+        return order, exact
 
     @_jit(inline="always")
-    def _sum49(t):
-        """float32 sum of ``t[:49]`` in torch's order (:func:`_sum8`)."""
-        p0, p1, p2, p3, p4, p5, p6, p7 = t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7]
-        for k in (32, 40, 8, 16, 24):
-            p0 += t[k]
-            p1 += t[k + 1]
-            p2 += t[k + 2]
-            p3 += t[k + 3]
-            p4 += t[k + 4]
-            p5 += t[k + 5]
-            p6 += t[k + 6]
-            p7 += t[k + 7]
-        f = _F(0.0) + t[48]
-        f += p0
-        f += p1
-        f += p2
-        f += p3
-        f += p4
-        f += p5
-        f += p6
-        f += p7
-        return f
+    def _terms(gx, gy, w, px, py, out, n):
+        """The five normal-equation terms of one window pixel for ``n`` keypoints, in the torch path's float32
+        steps: ``w gx gx``, ``w gx gy``, ``w gy gy``, ``w (gx gx px + gx gy py)``, ``w (gx gy px + gy gy py)``."""
+        t0, t1, t2, t3, t4 = out[0], out[1], out[2], out[3], out[4]
+        for i in range(n):
+            g1, g2, we, x, y = gx[i], gy[i], w[i], px[i], py[i]
+            t0[i] = we * g1 * g1
+            t1[i] = we * g1 * g2
+            t2[i] = we * g2 * g2
+            t3[i] = we * (g1 * g1 * x + g1 * g2 * y)
+            t4[i] = we * (g1 * g2 * x + g2 * g2 * y)
 
     @_jit
     def _refine(img, ix, iy, lo, hi, vml, kx, ky):
         """detection._gradient_offsets (radius 3, two passes) for the keypoints ``[lo, hi)`` of one image:
         Foerstner's corner point over the 7x7 window, re-centred once; writes ``base + offset`` to ``kx``/``ky``
-        (float32, as the torch path adds them). Each pass first builds every keypoint's window gradients and the
-        exponents of its Gaussian weights, exponentiates them at once (MKL's vector exp where ``vml``: torch's),
-        then sums the normal equations in torch's float32 order (:func:`_sum49`)."""
+        (float32, as the torch path adds them). Arrays run over the keypoints (the window pixel outermost) so
+        that every step but the window gather is a vector loop. Each pass gathers the 9x9 windows, takes their
+        Sobel gradients and the exponents of the Gaussian weights, exponentiates them at once (MKL's vector exp
+        where ``vml``: torch's), and sums the terms of the normal equations in the order of torch's CPU sum of
+        49 values: eight lanes, lane ``j`` adding pixels ``j, 32 + j, 40 + j, 8 + j, 16 + j, 24 + j``, then pixel
+        48 plus the lanes in turn."""
         H, W = img.shape
         radius = 3
         size = 7
         S = size + 2
         L = size * size
         n = hi - lo
-        patch = np.empty((S, S), np.float32)
-        xs = np.empty(S, np.int64)
-        ys = np.empty(S, np.int64)
-        gxs = np.empty((n, L), np.float32)
-        gys = np.empty((n, L), np.float32)
-        arg = np.empty((n, L), np.float32)
-        wgt = np.empty((n, L), np.float32)
-        pxs = np.empty((n, size), np.float32)
-        pys = np.empty((n, size), np.float32)
+        patch = np.empty((S * S, n), np.float32)
+        gxs = np.empty((L, n), np.float32)
+        gys = np.empty((L, n), np.float32)
+        arg = np.empty((L, n), np.float32)
+        wgt = np.empty((L, n), np.float32)
+        pxs = np.empty((size, n), np.float32)
+        pys = np.empty((size, n), np.float32)
         ex = np.empty(n, np.float32)
         ey = np.empty(n, np.float32)
-        t = np.empty((5, L), np.float32)
+        sums = np.empty((5, n), np.float32)
+        lane = np.empty((5, n), np.float32)
+        term = np.empty((5, n), np.float32)
+        xs = np.empty(S, np.int64)
+        ys = np.empty(S, np.int64)
         two = _F(2.0)
         eighth = _F(8.0)
         sigma = 0.6 * radius
@@ -498,51 +641,57 @@ if AVAILABLE:
             ex[i] = _F(ix[lo + i])
             ey[i] = _F(iy[lo + i])
         for _ in range(2):
-            for i in range(n):
+            for i in range(n):  # the windows around the rounded estimates, border repeated
                 cx = np.int64(np.rint(ex[i]))
                 cy = np.int64(np.rint(ey[i]))
                 for s in range(S):
                     xs[s] = min(max(cx + s - radius - 1, 0), W - 1)
                     ys[s] = min(max(cy + s - radius - 1, 0), H - 1)
-                for a in range(S):
-                    row = img[ys[a]]
+                for r in range(S):
+                    row = img[ys[r]]
                     for s in range(S):
-                        patch[a, s] = row[xs[s]]
+                        patch[r * S + s, i] = row[xs[s]]
                 for s in range(size):
-                    pxs[i, s] = _F(xs[s + 1])
-                    pys[i, s] = _F(ys[s + 1])
-                g1, g2, ar = gxs[i], gys[i], arg[i]
-                for a in range(size):
-                    dyy = pys[i, a] - ey[i]
-                    for c in range(size):
-                        e = a * size + c
-                        g1[e] = ((patch[a, c + 2] - patch[a, c]) + two * (patch[a + 1, c + 2] - patch[a + 1, c])
-                                 + (patch[a + 2, c + 2] - patch[a + 2, c])) / eighth
-                        g2[e] = ((patch[a + 2, c] - patch[a, c]) + two * (patch[a + 2, c + 1] - patch[a, c + 1])
-                                 + (patch[a + 2, c + 2] - patch[a, c + 2])) / eighth
-                        dxx = pxs[i, c] - ex[i]
-                        ar[e] = -(dxx * dxx + dyy * dyy) / div
+                    pxs[s, i] = _F(xs[s + 1])
+                    pys[s, i] = _F(ys[s + 1])
+            for a in range(size):
+                dy = pys[a]
+                for c in range(size):
+                    e = a * size + c
+                    u0, u2 = patch[a * S + c], patch[a * S + c + 2]
+                    m0, m2 = patch[(a + 1) * S + c], patch[(a + 1) * S + c + 2]
+                    d0, d1, d2 = patch[(a + 2) * S + c], patch[(a + 2) * S + c + 1], patch[(a + 2) * S + c + 2]
+                    u1 = patch[a * S + c + 1]
+                    g1, g2, ar, dx = gxs[e], gys[e], arg[e], pxs[c]
+                    for i in range(n):
+                        g1[i] = ((u2[i] - u0[i]) + two * (m2[i] - m0[i]) + (d2[i] - d0[i])) / eighth
+                        g2[i] = ((d0[i] - u0[i]) + two * (d1[i] - u1[i]) + (d2[i] - u2[i])) / eighth
+                        qx = dx[i] - ex[i]
+                        qy = dy[i] - ey[i]
+                        ar[i] = -(qx * qx + qy * qy) / div
             if vml:
-                for i0 in range(0, n, 16):  # short calls: MKL keeps them on this thread
-                    i1 = min(n, i0 + 16)
-                    _vms_exp((i1 - i0) * L, arg[i0:i1].reshape(-1), wgt[i0:i1].reshape(-1))
+                _vms_exp(L * n, arg.reshape(-1), wgt.reshape(-1))
             else:
-                for i in range(n):
-                    for e in range(L):
-                        wgt[i, e] = np.exp(arg[i, e])
+                for e in range(L):
+                    for i in range(n):
+                        wgt[e, i] = np.exp(arg[e, i])
+            _terms(gxs[48], gys[48], wgt[48], pxs[6], pys[6], term, n)
+            for q in range(5):
+                sums[q, :n] = _F(0.0) + term[q]
+            for j in range(8):
+                _terms(gxs[j], gys[j], wgt[j], pxs[j % size], pys[j // size], lane, n)
+                for e in (32 + j, 40 + j, 8 + j, 16 + j, 24 + j):
+                    _terms(gxs[e], gys[e], wgt[e], pxs[e % size], pys[e // size], term, n)
+                    for q in range(5):
+                        lq, tq = lane[q], term[q]
+                        for i in range(n):
+                            lq[i] += tq[i]
+                for q in range(5):
+                    sq, lq = sums[q], lane[q]
+                    for i in range(n):
+                        sq[i] += lq[i]
             for i in range(n):
-                g1, g2, w = gxs[i], gys[i], wgt[i]
-                for a in range(size):
-                    py = pys[i, a]
-                    for c in range(size):
-                        e = a * size + c
-                        gx, gy, we, px = g1[e], g2[e], w[e], pxs[i, c]
-                        t[0, e] = we * gx * gx
-                        t[1, e] = we * gx * gy
-                        t[2, e] = we * gy * gy
-                        t[3, e] = we * (gx * gx * px + gx * gy * py)
-                        t[4, e] = we * (gx * gy * px + gy * gy * py)
-                fxx, fxy, fyy, fx, fy = _sum49(t[0]), _sum49(t[1]), _sum49(t[2]), _sum49(t[3]), _sum49(t[4])
+                fxx, fxy, fyy, fx, fy = sums[0, i], sums[1, i], sums[2, i], sums[3, i], sums[4, i]
                 det = fxx * fyy - fxy * fxy
                 tr = fxx + fyy
                 if det > rel * (tr * tr) + eps:
@@ -672,17 +821,19 @@ def _cell_order(flat, strength, per, c: int, w: int, ch: int, cw: int, gx: int, 
 
 
 def _fill(flat, strength, per, kc: int, n: int, ncell: int, w: int, ix: np.ndarray, iy: np.ndarray) -> int:
-    """The second half of the bucketing: the round-robin order over the cells; fills ``ix``/``iy`` and returns
-    how many slots are filled. Where keys tie, the order is ``torch.topk``'s on the torch path's key array."""
-    keys, slot, src, order, tied = _keys(strength, per, kc, n)
-    if tied:
-        full = np.full(max(ncell * kc, n), _invalid(n), np.float32)
+    """The second half of the bucketing: the round-robin order over the cells as ``torch.topk`` orders the torch
+    path's key array: sorted, and where keys tie, its partial sort repeated (where it takes one) or called; fills
+    ``ix``/``iy`` and returns how many slots are filled."""
+    keys, slot, src, rank = _keys(strength, per, kc)
+    order, exact = _sorted_keys(keys, rank, n)
+    size = max(ncell * kc, n)
+    if not exact and _SETUP.heap and 64 * n <= size:
+        order = _top_keys(keys, slot, n, np.float32(_invalid(n)))
+    elif not exact:
+        full = np.full(size, _invalid(n), np.float32)
         full[slot] = keys
         vals, top = torch.from_numpy(full).topk(n)
-        top = top[vals > _invalid(n)].numpy()
-        where = np.empty(full.shape[0], np.int64)
-        where[slot] = np.arange(slot.shape[0])
-        order = where[top]
+        order = np.searchsorted(slot, top[vals > _invalid(n)].numpy())
     filled = min(n, order.shape[0])
     f = flat[src[order[:filled]]]
     iy[:filled] = f // w

@@ -121,17 +121,47 @@ def test_too_small_image_keeps_the_torch_error(monkeypatch):
         detect(img)
 
 
-def test_exact_ties_are_ordered_as_torch_orders_them(monkeypatch):
+@pytest.mark.parametrize("grid, n, partial_sort", [((4, 4), 200, False), ((8, 8), 150, True)])
+def test_exact_ties_are_ordered_as_torch_orders_them(grid, n, partial_sort, monkeypatch):
     """A checkerboard gives many corners of exactly equal response in every cell and equal keys across cells:
-    the order of equal values is torch.topk's, which the compiled path asks for on the torch path's rows."""
+    the order of equal values is torch.topk's, which the compiled path asks torch for on the torch path's rows
+    or, where topk takes std::partial_sort (64 n <= cells x kc), repeats."""
     yy, xx = torch.meshgrid(torch.arange(96), torch.arange(128), indexing="ij")
     img = (((yy // 6) + (xx // 6)) % 2).float().view(1, 1, 96, 128) * 0.8 + 0.1
     resp = detection.corner_response(img)[0, 0]
     peaks = resp[8:-8, 8:-8][resp[8:-8, 8:-8] >= 0.5 * resp.max()]
     assert peaks.unique().numel() < peaks.numel() // 4  # the test is about ties: there are many
-    ref, out = _both(detect, monkeypatch, img, max_features=200, grid=(4, 4))
-    assert ref[1].sum() == 200
+    calls = {"cells": 0, "heap": 0}
+    cell_order, top_keys = dn._cell_order, dn._top_keys
+
+    def count_cells(*args):
+        calls["cells"] += 1
+        return cell_order(*args)
+
+    def count_heap(*args):
+        calls["heap"] += 1
+        return top_keys(*args)
+
+    monkeypatch.setattr(dn, "_cell_order", count_cells)
+    monkeypatch.setattr(dn, "_top_keys", count_heap)
+    ref, out = _both(detect, monkeypatch, img, max_features=n, grid=grid)
+    assert ref[1].sum() == n
     _assert_same(ref, out)
+    assert calls["cells"] > 0  # equal strengths in a cell were ordered by torch.topk
+    assert calls["heap"] == int(partial_sort and dn._SETUP.heap)
+
+
+def test_partial_sort_is_torch_topk():
+    """The repeated std::partial_sort gives torch.topk's indices, equal values included."""
+    dn._SETUP()
+    if not dn._SETUP.heap:  # pragma: no cover - another torch.topk: the compiled path then calls it instead
+        pytest.skip("torch.topk is not libstdc++'s partial sort here")
+    g = torch.Generator().manual_seed(6)
+    for size, k in [(64000, 1000), (640, 10), (64, 1)]:
+        vals = torch.randint(0, 20, (size,), generator=g).float()
+        vals[torch.rand(size, generator=g) < 0.7] = -5.0
+        top = dn._partial_sort(vals.numpy().copy(), k)
+        assert np.array_equal(top, vals.topk(k).indices.numpy())
 
 
 def test_threads_do_not_change_the_result():
