@@ -1,14 +1,19 @@
-"""CPU inference path of the whole exact ego-motion solve (egorefine.motion.solve) compiled with numba.
+"""CPU inference path of the whole ego-motion solve (egorefine.motion.solve) compiled with numba.
 
 In the refiner's loop the solve sees one frame of a few hundred features per call. The torch path
 spends ~2 ms on it in about 250 operator launches (sampling the disparity at the features, the
 rows of equation (2), the batched RANSAC with its refit, the start motion, the LM, the SE(3) log
 and the quality flag), while the arithmetic is a few hundred thousand multiply-adds. Here one
 compiled call does all of it for every batch item: the input value checks, the disparity sampling
-with its usability rules, the motion-field rows (PAPER.md eq. 2), the MSAC RANSAC over minimal
-sets of 3 features and its refit by the normal equations of eq. (3), the start motion, the LM of
-:mod:`egorefine.motion._lm_numba` (:func:`~egorefine.motion._lm_numba.lm_item`), the twist by the
-SE(3) log, the weights, RMS and the conditioning test of ``ok``.
+with its usability rules, the motion-field rows (PAPER.md eq. 2), then per method
+
+* ``"exact"``: the MSAC RANSAC over minimal sets of 3 features and its refit by the normal equations
+  of eq. (3), the start motion, the LM of :mod:`egorefine.motion._lm_numba`
+  (:func:`~egorefine.motion._lm_numba.lm_item`) and the twist by the SE(3) log;
+* ``"robust"``: the RANSAC with its three fits on the inliers, the motion by the SE(3) exp;
+* ``"linear"``: the weighted fit of eq. (3) over every usable feature, the motion by the SE(3) exp;
+
+and the weights, RMS and the conditioning test of ``ok``.
 
 The steps are the torch path's, with its random draws (the same ``torch.rand`` tensor, cached per
 ``(hypotheses, seed, dtype)``), tie-breaking (the first minimal MSAC cost, costs compared as rounded
@@ -41,13 +46,13 @@ from ..geometry.se3 import _SMALL_ANGLE
 from . import _lm_numba
 from .robust import HUBER_K, TUKEY_C
 
-__all__ = ["AVAILABLE", "solve_exact"]
+__all__ = ["AVAILABLE", "solve_compiled"]
 
 # the robust kernels' constants (their codes are _lm_numba's)
 _KERNEL = {"l2": 1.0, "huber": HUBER_K, "tukey": TUKEY_C}
 
 if AVAILABLE:
-    from ._lm_numba import _damped_step, _twist_exp, _weight, lm_item
+    from ._lm_numba import _damped_step, _scale, _twist_exp, _weight, lm_item
 
     @_jit
     def _inputs_bad(pp, pn, K, baseline, weights, has_weights, tiny):
@@ -124,10 +129,11 @@ if AVAILABLE:
         av[0], av[1], av[2], av[3], av[4], av[5] = 0.0, R[5, i], R[6, i], R[7, i], R[8, i], R[9, i]
 
     @_jit
-    def _fit(R, w, damping, eps, tiny, x):
-        """solve._linear_fit: the weighted normal equations of eq. (3), Jacobi-scaled and damped, solved into ``x``."""
-        H = np.zeros((6, 6))
-        g = np.zeros(6)
+    def _normal(R, w, H, g):
+        """The weighted normal equations of eq. (3): ``H = A^T W A`` and ``g = -A^T W b`` (``_damped_step`` solves
+        for ``-g``)."""
+        H[:] = 0.0
+        g[:] = 0.0
         au, av = np.empty(6), np.empty(6)
         for i in range(R.shape[1]):
             wi = w[i]
@@ -136,12 +142,19 @@ if AVAILABLE:
             _full_rows(R, i, au, av)
             for a in range(6):
                 ua, va = wi * au[a], wi * av[a]
-                g[a] -= ua * R[10, i] + va * R[11, i]  # _damped_step solves for -g
+                g[a] -= ua * R[10, i] + va * R[11, i]
                 for c in range(a, 6):
                     H[a, c] += ua * au[c] + va * av[c]
         for a in range(6):
             for c in range(a):
                 H[a, c] = H[c, a]
+
+    @_jit
+    def _fit(R, w, damping, eps, tiny, x):
+        """solve._linear_fit: eq. (3) by the normal equations, Jacobi-scaled and damped, solved into ``x``."""
+        H = np.empty((6, 6))
+        g = np.empty(6)
+        _normal(R, w, H, g)
         _damped_step(H, g, damping, eps, tiny, x)
 
     @_jit(fastmath={"reassoc", "contract", "nsz"})
@@ -225,6 +238,31 @@ if AVAILABLE:
         _fit(R, wi, damping, eps, tiny, x)
 
     @_jit
+    def _motion_of(twist, small2, M):
+        """twist_to_motion = se3_exp(-twist) (geometry.se3) in closed form, with the same series near zero rotation."""
+        r0, r1, r2 = -twist[0], -twist[1], -twist[2]
+        p0, p1, p2 = -twist[3], -twist[4], -twist[5]
+        t2 = p0 * p0 + p1 * p1 + p2 * p2
+        if t2 < small2:
+            a = 1 - t2 / 6 + t2 * t2 / 120
+            b = 0.5 - t2 / 24 + t2 * t2 / 720
+            c = 1 / 6 - t2 / 120 + t2 * t2 / 5040
+        else:
+            t = math.sqrt(t2)
+            a, b, c = math.sin(t) / t, (1 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
+        W = np.array([[0.0, -p2, p1], [p2, 0.0, -p0], [-p1, p0, 0.0]])
+        rho = (r0, r1, r2)
+        for r in range(3):
+            tr = 0.0
+            for col in range(3):
+                w2 = W[r, 0] * W[0, col] + W[r, 1] * W[1, col] + W[r, 2] * W[2, col]
+                eye = 1.0 if r == col else 0.0
+                M[r, col] = eye + a * W[r, col] + b * w2  # Rodrigues
+                tr += (eye + b * W[r, col] + c * w2) * rho[col]  # left Jacobian of SO(3) times rho
+            M[r, 3] = tr
+        M[3, 0], M[3, 1], M[3, 2], M[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+    @_jit
     def _twist_of(M, tiny, small2, twist):
         """motion_to_twist = -se3_log (geometry.se3) of one 4x4 motion, with the same series near zero rotation."""
         v0, v1, v2 = M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]
@@ -251,9 +289,10 @@ if AVAILABLE:
 
     @_jit
     def _solve(pp, pn, disp, is_map, height, width, spread, valid, has_valid, K, baseline, weights, has_weights, u,
-               rounded, threshold, refits, late_is_w, codes, ks, iters, min_features, rcond, eps, tiny, small2,
+               rounded, threshold, method, refits, late_is_w, codes, ks, iters, min_features, rcond, eps, tiny, small2,
                motion, twist, w_out, ok, num, rms):
-        """The exact solve for every batch item into the output arrays (the input dtype, ok bool, num int64)."""
+        """The solve (``method`` 0 exact, 1 robust, 2 linear) of every batch item into the output arrays (the input
+        dtype, ok bool, num int64)."""
         B, N = pp.shape[0], pp.shape[1]
         d = np.empty(N)
         usable = np.empty(N, np.bool_)
@@ -269,6 +308,10 @@ if AVAILABLE:
         cam = np.empty(4)
         M = np.empty((4, 4))  # the motion, in float64 whatever the output dtype
         tw = np.empty(6)
+        H = np.empty((6, 6))
+        g = np.empty(6)
+        sc = np.empty(6)
+        r2 = np.empty(N)
         for b in range(B):
             fx, fy, cx, cy = float(K[b, 0, 0]), float(K[b, 1, 1]), float(K[b, 0, 2]), float(K[b, 1, 2])
             if is_map:
@@ -282,31 +325,51 @@ if AVAILABLE:
                 w[i] = (weights[b, i] if has_weights else 1.0) if usable[i] else 0.0
                 d[i] = d[i] / fb  # inverse depth 1/Z = d / (f B)
             _rows(pp[b], pn[b], d, fx, fy, cx, cy, R)
-            _ransac(R, w, u, rounded, threshold, refits, eps, eps, tiny, x, inl)
-            for i in range(N):
-                w_in[i] = w[i] if inl[i] else 0.0
-                rays[i, 0], rays[i, 1] = (pp[b, i, 0] - cx) / fx, (pp[b, i, 1] - cy) / fy
-                rays[i, 2], rays[i, 3] = 1.0, d[i]
-                target[i, 0], target[i, 1] = pn[b, i, 0], pn[b, i, 1]
-            for a in range(6):  # start: twist_to_motion(twist) = exp(-twist), a non-finite component taken as 0
-                x[a] = -x[a] if np.isfinite(x[a]) else 0.0
-            _twist_exp(x, M)
-            cam[0], cam[1], cam[2], cam[3] = fx, fy, cx, cy
-            late = w if late_is_w else w_in
-            lm_item(M, rays, target, cam, w_in, late, codes, ks, iters, eps, tiny, S, Hs)
-            # outputs: the last kernel's weights (counted as stored, in the output dtype), the reprojection RMS, the
-            # twist and the quality flag
+            if method == 2:  # "linear": eq. (3) over every usable feature
+                _fit(R, w, eps, eps, tiny, x)
+                late = w
+            else:
+                _ransac(R, w, u, rounded, threshold, refits, eps, eps, tiny, x, inl)
+                for i in range(N):
+                    w_in[i] = w[i] if inl[i] else 0.0
+                late = w if method == 0 and late_is_w else w_in
+            # outputs: the final weights (counted as stored, in the output dtype), the RMS of the final model's
+            # residuals, the twist and the quality flag
             count, wsum, sq = 0, 0.0, 0.0
             wo = w_out[b]
-            for i in range(N):
-                wo[i] = late[i] * S[i, 15] * _weight(S[i, 14], codes[1], ks[1])
-                r = S[i, 14] * S[i, 15]
-                if wo[i] > 0:
-                    count += 1
-                wsum += wo[i]
-                sq += wo[i] * r * r
+            if method == 0:  # "exact": the LM from the RANSAC twist, on the reprojection error
+                for i in range(N):
+                    rays[i, 0], rays[i, 1] = (pp[b, i, 0] - cx) / fx, (pp[b, i, 1] - cy) / fy
+                    rays[i, 2], rays[i, 3] = 1.0, d[i]
+                    target[i, 0], target[i, 1] = pn[b, i, 0], pn[b, i, 1]
+                for a in range(6):  # start: twist_to_motion(twist) = exp(-twist), a non-finite component taken as 0
+                    x[a] = -x[a] if np.isfinite(x[a]) else 0.0
+                _twist_exp(x, M)
+                cam[0], cam[1], cam[2], cam[3] = fx, fy, cx, cy
+                lm_item(M, rays, target, cam, w_in, late, codes, ks, iters, eps, tiny, S, Hs)
+                for i in range(N):
+                    wo[i] = late[i] * S[i, 15] * _weight(S[i, 14], codes[1], ks[1])
+                    r = S[i, 14] * S[i, 15]
+                    if wo[i] > 0:
+                        count += 1
+                    wsum += wo[i]
+                    sq += wo[i] * r * r
+                _twist_of(M, tiny, small2, tw)
+            else:  # the linear model's normal matrix and residuals at the final weights
+                _normal(R, late, H, g)
+                _scale(H, eps, tiny, sc)
+                for r in range(6):
+                    for c in range(6):
+                        Hs[r, c] = H[r, c] * sc[r] * sc[c]
+                _residual2(R, x, r2)
+                for i in range(N):
+                    wo[i] = late[i]
+                    if wo[i] > 0:
+                        count += 1
+                    wsum += wo[i]
+                    sq += wo[i] * (r2[i] + tiny)  # solve._norm2 squared
+                tw[:] = x
             rms_b = math.sqrt(sq / max(wsum, eps))
-            _twist_of(M, tiny, small2, tw)
             ev = np.linalg.eigvalsh(Hs)
             finite = np.isfinite(rms_b)
             for a in range(6):
@@ -317,6 +380,8 @@ if AVAILABLE:
                 num[b], rms[b] = count, rms_b
                 for a in range(6):
                     twist[b, a] = tw[a]
+                if method != 0:
+                    _motion_of(tw, small2, M)
                 for r in range(4):
                     for c in range(4):
                         motion[b, r, c] = M[r, c]
@@ -350,7 +415,10 @@ def _array(t: torch.Tensor, dtype: np.dtype) -> np.ndarray:
 _NO_BOOL = np.zeros((1, 1), np.bool_)
 
 
-def solve_exact(
+_METHOD_CODES = {"exact": 0, "robust": 1, "linear": 2}
+
+
+def solve_compiled(
     points_prev: torch.Tensor,
     points_next: torch.Tensor,
     disparity_prev: torch.Tensor,
@@ -359,6 +427,8 @@ def solve_exact(
     weights: torch.Tensor | None,
     valid_prev: torch.Tensor | None,
     *,
+    method: str,
+    refits: int,
     min_features: int,
     loss: str,
     scale: float,
@@ -369,10 +439,11 @@ def solve_exact(
     rcond: float,
     max_spread: float,
 ) -> tuple[torch.Tensor, ...] | None:
-    """``solve_ego_motion(..., method="exact")`` for CPU float32/float64 tensors without gradient, compiled.
+    """:func:`~egorefine.motion.solve_ego_motion` for CPU float32/float64 tensors without gradient, compiled.
 
-    Shapes, dtypes and settings must have been checked by the caller (solve.solve_ego_motion); ``max_spread`` is
-    solve._MAX_DISPARITY_SPREAD, the largest disparity difference among the 4 pixels of a usable sample.
+    Shapes, dtypes and settings must have been checked by the caller (solve.solve_ego_motion); ``refits`` is the
+    number of RANSAC fits on the inliers (solve._REFITS) and ``max_spread`` solve._MAX_DISPARITY_SPREAD, the largest
+    disparity difference among the 4 pixels of a usable sample.
 
     Returns:
         ``(motion (B, 4, 4), twist (B, 6), weights (B, N), ok (B,), num_inliers (B,), rms (B,))`` in the dtype of
@@ -399,10 +470,11 @@ def solve_exact(
     ok, num = torch.empty(B, dtype=torch.bool), torch.empty(B, dtype=torch.long)
     if N > 0:
         _solve(pp, pn, disp, is_map, height, width, float(max_spread), valid, valid_prev is not None, Kn, bl, wn,
-               weights is not None, _draws(ransac_hypotheses, seed, dtype), np.empty(2, nd), float(ransac_threshold), 1,
-               loss == "tukey", codes, ks, np.array([first, iterations - first], np.int64), int(min_features),
-               float(rcond), eps_like(points_prev), info.tiny, _SMALL_ANGLE**2, motion.numpy(), twist.numpy(),
-               w_out.numpy(), ok.numpy(), num.numpy(), rms.numpy())
+               weights is not None, _draws(ransac_hypotheses, seed, dtype), np.empty(2, nd), float(ransac_threshold),
+               _METHOD_CODES[method], int(refits), loss == "tukey", codes, ks,
+               np.array([first, iterations - first], np.int64), int(min_features), float(rcond), eps_like(points_prev),
+               info.tiny, _SMALL_ANGLE**2, motion.numpy(), twist.numpy(), w_out.numpy(), ok.numpy(), num.numpy(),
+               rms.numpy())
     else:  # no features: the fallback of every item
         motion[:] = torch.eye(4, dtype=dtype)
         for t in (twist, rms, ok, num):

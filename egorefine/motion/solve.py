@@ -32,7 +32,7 @@ Every result carries a per-item quality flag ``ok``: too few features (fewer tha
 singular system (features on one 3-D line, all weights zero) or a non-finite solution
 give ``ok = False`` and the identity motion instead of NaN, without raising.
 
-On the CPU without gradient (float32/float64), ``"exact"`` runs as one compiled call per batch
+On the CPU without gradient (float32/float64), every method runs as one compiled call per batch
 (:mod:`egorefine.motion._solve_numba`, the same steps in float64); ``solve._COMPILED_SOLVE = False``
 gives the torch path, which stays the reference and serves GPU tensors and autograd.
 
@@ -318,6 +318,10 @@ def _ransac(
     return x, w * inl
 
 
+# RANSAC's fits on the inliers: "exact" refines anyway (and re-admits inliers with its own kernel), one is enough there
+_REFITS = {"robust": 3, "exact": 1}
+
+
 # --------------------------------------------------------------------------- exact (SE(3) LM)
 
 
@@ -458,12 +462,12 @@ def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor
                                 scale)
 
 
-# the compiled CPU form of the whole exact solve (False: the torch path with the compiled LM above, for comparisons)
+# the compiled CPU form of the whole solve (False: the torch path, with the compiled LM above, for comparisons)
 _COMPILED_SOLVE = True
 
 
 def _compiled_solve(*tensors: torch.Tensor | None) -> bool:
-    """The compiled exact solve applies: the compiled LM does (and is not switched off), numba present and every
+    """The compiled solve applies: the compiled LM does (and is not switched off), numba present and every
     float input float32/float64 on the CPU without gradient."""
     given = [t for t in tensors if t is not None]
     return (_COMPILED_SOLVE and _solve_numba.AVAILABLE and _compiled_lm(*given)
@@ -541,7 +545,7 @@ def solve_ego_motion(
     (torch.Size([2, 4, 4]), [True, True])
     """
     _check_inputs(points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev, values=False)
-    compiled = method == "exact" and _compiled_solve(points_prev, points_next, disparity_prev, K, baseline, weights)
+    compiled = _compiled_solve(points_prev, points_next, disparity_prev, K, baseline, weights)
     if not compiled:
         _check_values(points_prev, points_next, K, baseline, weights)
     check_choice(method, METHODS, "method")
@@ -558,8 +562,9 @@ def solve_ego_motion(
     if rcond is None:
         rcond = 1e-9 if dtype == torch.float64 else 1e-6
     if compiled:  # CPU inference: one compiled call (None: a bad input value, which the checks below raise)
-        out = _solve_numba.solve_exact(
-            points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev, min_features=min_features,
+        out = _solve_numba.solve_compiled(
+            points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev, method=method,
+            refits=_REFITS.get(method, 1), min_features=min_features,
             loss=loss, scale=scale, ransac_hypotheses=ransac_hypotheses, ransac_threshold=ransac_threshold,
             iterations=iterations, seed=seed, rcond=rcond, max_spread=_MAX_DISPARITY_SPREAD,
         )  # fmt: skip
@@ -584,9 +589,7 @@ def solve_ego_motion(
         w_out = w
         rms_r = _linear_residual(A, b, twist)
     else:
-        # "exact" refines anyway (and re-admits inliers with its own kernel): one refit is enough there.
-        refits = 3 if method == "robust" else 1
-        twist, w_in = _ransac(A, b, w, ransac_hypotheses, ransac_threshold, seed, damping, refits)
+        twist, w_in = _ransac(A, b, w, ransac_hypotheses, ransac_threshold, seed, damping, _REFITS[method])
         if method == "robust":
             w_out = w_in
             Hs = _jacobi_scaled(_normal_equations(A, b, w_in.repeat_interleave(2, dim=1))[0])[0]

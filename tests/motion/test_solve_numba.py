@@ -1,5 +1,5 @@
-"""The compiled CPU form of the whole exact solve (egorefine.motion._solve_numba) against the torch path, which
-stays the reference (GPU, autograd)."""
+"""The compiled CPU form of the whole solve (egorefine.motion._solve_numba; exact, robust and linear) against the
+torch path, which stays the reference (GPU, autograd)."""
 
 from __future__ import annotations
 
@@ -23,8 +23,8 @@ TOL = {torch.float32: 2e-5, F64: 1e-9}
 def _both(monkeypatch, *args, **kw):
     """(compiled, torch path) results of the same call; the compiled path must have run."""
     calls = []
-    real = _solve_numba.solve_exact
-    monkeypatch.setattr(_solve_numba, "solve_exact", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = _solve_numba.solve_compiled
+    monkeypatch.setattr(_solve_numba, "solve_compiled", lambda *a, **k: calls.append(1) or real(*a, **k))
     compiled = solve_ego_motion(*args, **kw)
     assert calls, "the compiled solve did not run"
     monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)
@@ -58,7 +58,8 @@ def _args(tr):
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("kw", [{}, {"loss": "huber"}, {"loss": "l2", "iterations": 4}, {"iterations": 0},
-                                {"scale": 0.5, "ransac_hypotheses": 16, "seed": 3, "ransac_threshold": 3.0}])
+                                {"scale": 0.5, "ransac_hypotheses": 16, "seed": 3, "ransac_threshold": 3.0},
+                                {"method": "robust"}, {"method": "robust", "ransac_hypotheses": 8, "seed": 5}])
 def test_compiled_equals_torch_path_per_point(monkeypatch, dtype, kw):
     tr = make_tracks(torch.tensor(TWISTS, dtype=dtype), num=300, noise=0.3, outliers=0.15, seed=4)
     w = torch.rand(2, 300, generator=torch.Generator().manual_seed(1), dtype=dtype) + 0.5
@@ -67,7 +68,18 @@ def test_compiled_equals_torch_path_per_point(monkeypatch, dtype, kw):
     _assert_same(a, r, dtype)
     assert a.ok.all()
     assert (a.weights[~tr.inlier] == 0).float().mean() > 0.9  # the outlier tracks are rejected
-    torch.testing.assert_close(a.motion, tr.motion, rtol=0, atol=5e-3)
+    torch.testing.assert_close(a.motion, tr.motion, rtol=0, atol=5e-3 if kw.get("method") is None else 2e-2)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_compiled_linear_equals_torch_path(monkeypatch, dtype):
+    # the paper's estimator (eq. 3): no outliers here, its first-order bias stays within 2 cm
+    tr = make_tracks(torch.tensor(TWISTS, dtype=dtype), num=200, noise=0.3, seed=7)
+    a, r = _both(monkeypatch, *_args(tr), method="linear")
+    _assert_same(a, r, dtype)
+    assert a.ok.all() and torch.equal(a.num_inliers, torch.full((2,), 200))
+    torch.testing.assert_close(a.twist, r.twist, rtol=0, atol=TOL[dtype])
+    torch.testing.assert_close(a.motion, tr.motion, rtol=0, atol=2e-2)
 
 
 def _map_scene(dtype, B=2, num=400, seed=0, outliers=0.1):
@@ -100,11 +112,13 @@ def _map_scene(dtype, B=2, num=400, seed=0, outliers=0.1):
 def test_compiled_equals_torch_path_on_a_map(monkeypatch, dtype):
     pts, nxt, disp, K, base, valid, usable, twist = _map_scene(dtype)
     assert 0.3 < usable.float().mean() < 0.9  # the usability rules matter here
-    for v in (valid, None):
-        a, r = _both(monkeypatch, pts, nxt, disp, K, base, valid_prev=v)
+    for v, method in ((valid, "exact"), (None, "exact"), (valid, "robust"), (valid, "linear")):
+        a, r = _both(monkeypatch, pts, nxt, disp, K, base, valid_prev=v, method=method)
         _assert_same(a, r, dtype)
         assert a.ok.all()
-        torch.testing.assert_close(a.motion, twist_to_motion(twist), rtol=0, atol=5e-3)
+        if method != "linear":  # (the outliers pull the linear fit)
+            bound = 5e-3 if method == "exact" else 2e-2
+            torch.testing.assert_close(a.motion, twist_to_motion(twist), rtol=0, atol=bound)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
@@ -137,6 +151,10 @@ def test_degenerate_items_flag_not_nan(monkeypatch):
     tr = make_tracks(torch.tensor(TWISTS), num=60, noise=0.2, seed=2)
     w = torch.ones(2, 60)
     w[1] = 0.0  # item 1: no feature
+    for method in ("linear", "robust"):
+        a, r = _both(monkeypatch, *_args(tr), weights=w, method=method)
+        _assert_same(a, r, torch.float32)
+        assert a.ok.tolist() == [True, False]
     a, r = _both(monkeypatch, *_args(tr), weights=w)
     _assert_same(a, r, torch.float32)
     assert a.ok.tolist() == [True, False]
@@ -152,8 +170,9 @@ def test_degenerate_items_flag_not_nan(monkeypatch):
     assert not a.ok.any()
     # no features at all (the torch path cannot index an empty set: compiled only)
     empty = torch.zeros(2, 0, 2)
-    e = solve_ego_motion(empty, empty, torch.zeros(2, 0), tr.K, tr.baseline)
-    assert not e.ok.any() and torch.equal(e.motion, torch.eye(4).expand(2, 4, 4)) and e.weights.shape == (2, 0)
+    for method in ("exact", "robust", "linear"):
+        e = solve_ego_motion(empty, empty, torch.zeros(2, 0), tr.K, tr.baseline, method=method)
+        assert not e.ok.any() and torch.equal(e.motion, torch.eye(4).expand(2, 4, 4)) and e.weights.shape == (2, 0)
 
 
 def test_batch_item_equals_alone():
@@ -184,12 +203,11 @@ def test_torch_path_where_compiled_does_not_apply(monkeypatch):
         raise AssertionError("the compiled solve ran")
 
     tr = make_tracks(torch.tensor(TWISTS[:1], dtype=F64), num=60, noise=0.2, seed=1)
-    monkeypatch.setattr(_solve_numba, "solve_exact", refuse)
+    monkeypatch.setattr(_solve_numba, "solve_compiled", refuse)
     points = tr.points_next.clone().requires_grad_(True)
     res = solve_ego_motion(tr.points_prev, points, tr.disparity, tr.K, tr.baseline)  # a gradient is wanted
     res.motion.sum().backward()
     assert torch.isfinite(points.grad).all()
-    solve_ego_motion(*_args(tr), method="robust")
     solve_ego_motion(*_args(tr), weights=torch.ones(1, 60, dtype=torch.float16))
     monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)
     solve_ego_motion(*_args(tr))
