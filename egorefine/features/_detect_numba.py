@@ -44,6 +44,7 @@ import threading
 import numpy as np
 import torch
 
+from ..core import ValueRangeError
 from ..core._jit import AVAILABLE, Workers
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
@@ -302,8 +303,16 @@ if AVAILABLE:
         """``resp[y] = gftt_response(img)[y]`` for rows ``[y0, y1)`` of one ``(H, W)`` float32 image (H, W >= 4).
 
         Rows ``y0 - 3 .. y1 + 2`` (mirrored at the image's edges) are blurred along x into a ring of seven rows
-        per product; each output row then takes its seven rows of the ring."""
+        per product; each output row then takes its seven rows of the ring. Returns whether the image rows
+        ``[y0, y1)`` are all finite (the public entry point's check, without a full-image torch reduction)."""
         H, W = img.shape
+        finite = True
+        for y in range(y0, y1):
+            row = img[y]
+            bad = False
+            for x in range(W):
+                bad |= (row[x] - row[x]) != 0  # NaN for NaN and Inf
+            finite &= not bad
         ring = np.empty((3, 7, W), np.float32)
         pxx = np.empty(W + 6, np.float32)
         pyy = np.empty(W + 6, np.float32)
@@ -319,6 +328,7 @@ if AVAILABLE:
             y = j - 3
             if y >= y0:
                 _vblur_response(ring, (y - y0) % 7, k, vml, rows[0], rows[1], rows[2], rows[3], resp[y])
+        return finite
 
     @_jit
     def _row_max(row):
@@ -854,7 +864,8 @@ def detect_compiled(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """detection._detect with the Shi-Tomasi response on a float32 CPU ``(B, 1, H, W)`` grey image, H, W >= 4.
 
-    Returns keypoints ``(B, n, 2)`` and weights ``(B, n)`` as :func:`egorefine.features.detect` does.
+    Returns keypoints ``(B, n, 2)`` and weights ``(B, n)`` as :func:`egorefine.features.detect` does; raises
+    :class:`egorefine.core.ValueRangeError` (as ``check_finite`` words it) where the image holds NaN or Inf.
     """
     from .detection import _subpixel_offsets
 
@@ -867,7 +878,9 @@ def detect_compiled(
     k = _gauss7()
     parts = max(1, min(threads, h // _MIN_BAND_ROWS))
     rows = _bands(h, parts)
-    _run(_response_rows, [(img[i], y0, y1, k, vml, resp[i]) for i in range(b) for y0, y1 in rows], threads)
+    finite = _run(_response_rows, [(img[i], y0, y1, k, vml, resp[i]) for i in range(b) for y0, y1 in rows], threads)
+    if not all(finite):
+        raise ValueRangeError("image: contains NaN or Inf")
     floor = _F(min_response)
     tasks = [(resp[i], y0, y1, nms_radius, border, floor, idx[i * h * w + y0 * w:], val[i * h * w + y0 * w:])
              for i in range(b) for y0, y1 in rows]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from egorefine.core import ValueRangeError
 from egorefine.data import render_sequence
 from egorefine.features import _detect_numba as dn
 from egorefine.features import detect, detection, replenish
@@ -192,3 +193,17 @@ def test_replenish_matches_torch(frames, monkeypatch):
     _assert_same(ref, out)
     ref, out = _both(replenish, monkeypatch, img, moved, live, max_features=600, min_distance=12.5)
     _assert_same(ref, out)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_image_raises_on_both_paths(bad, monkeypatch):
+    """The compiled path checks the pixels in its first pass (no torch reduction) and raises check_finite's error."""
+    img = torch.rand(2, 1, 40, 50, generator=torch.Generator().manual_seed(7))
+    img[1, 0, 33, 7] = bad
+    empty = torch.zeros(2, 20, 2), torch.zeros(2, 20)
+    for compiled in (False, True):
+        monkeypatch.setattr(detection, "_COMPILED", compiled)
+        with pytest.raises(ValueRangeError, match="image: contains NaN or Inf"):
+            detect(img)
+        with pytest.raises(ValueRangeError, match="image: contains NaN or Inf"):
+            replenish(img, *empty)
