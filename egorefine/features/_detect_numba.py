@@ -117,7 +117,11 @@ class _Setup:
             g = torch.Generator().manual_seed(0)
             roots = (torch.rand(1 << 14, generator=g) * 1e-4).numpy()
             args = (-torch.rand(1 << 14, generator=g) * 8.0).numpy()
-            self.vml = _vml_probe(sqrt, torch.sqrt, roots) and _vml_probe(exp, torch.exp, args)
+            before = local(1)  # as in the kernels (_one_thread_mkl): MKL on this thread only
+            try:
+                self.vml = _vml_probe(sqrt, torch.sqrt, roots) and _vml_probe(exp, torch.exp, args)
+            finally:
+                local(before)
         if self.vml:
             fns = (sqrt, exp)
             self.local = local
@@ -330,6 +334,11 @@ if AVAILABLE:
                 _vblur_response(ring, (y - y0) % 7, k, vml, rows[0], rows[1], rows[2], rows[3], resp[y])
         return finite
 
+    @_jit(inline="always")
+    def _larger(a, b):
+        """``max(a, b)`` for finite values, as a compare and select (LLVM vectorises it)."""
+        return b if b > a else a
+
     @_jit
     def _row_max(row):
         """Largest value of a row, eight running maxima at a time."""
@@ -338,10 +347,10 @@ if AVAILABLE:
         for x8 in range(0, W - 7, 8):
             seg = row[x8:x8 + 8]
             for i in range(8):
-                m[i] = max(m[i], seg[i])
+                m[i] = _larger(m[i], seg[i])
         best = m.max()
         for x in range(W - W % 8, W):
-            best = max(best, row[x])
+            best = _larger(best, row[x])
         return best
 
     @_jit
@@ -353,9 +362,11 @@ if AVAILABLE:
         H, W = resp.shape
         peak = -np.inf
         for y in range(y0, y1):
-            peak = max(peak, _row_max(resp[y]))
+            peak = _larger(peak, _row_max(resp[y]))
         vm = np.empty(W, np.float32)
         hm = np.empty(W, np.float32)
+        flag = np.zeros(W + 8, np.uint8)
+        n = max(W - 2 * border, 0)
         count = 0
         for y in range(max(y0, border), min(y1, H - border)):
             # the column maxima of the window's rows, then their maxima along the row
@@ -363,25 +374,29 @@ if AVAILABLE:
             for t in range(max(y - radius, 0) + 1, min(y + radius, H - 1) + 1):
                 row = resp[t]
                 for x in range(W):
-                    vm[x] = max(vm[x], row[x])
+                    vm[x] = _larger(vm[x], row[x])
             hm[:] = vm
             for d in range(1, radius + 1):
-                left = vm[0:W - d]
-                out = hm[d:W]
+                left, out = vm[0:W - d], hm[d:W]
                 for x in range(W - d):
-                    out[x] = max(out[x], left[x])
-                right = vm[d:W]
-                out = hm[0:W - d]
+                    out[x] = _larger(out[x], left[x])
+                right, out = vm[d:W], hm[0:W - d]
                 for x in range(W - d):
-                    out[x] = max(out[x], right[x])
-            row = resp[y]
-            base = y * W
-            for x in range(border, W - border):
-                v = row[x]
-                if v >= hm[x] and v >= floor:
-                    idx[count] = base + x
-                    val[count] = v
-                    count += 1
+                    out[x] = _larger(out[x], right[x])
+            # the candidates' flags in a vector loop, then a scan that skips eight clear flags at a time
+            seg, top = resp[y, border:W - border], hm[border:W - border]
+            for x in range(n):
+                v = seg[x]
+                flag[x] = (v >= top[x]) & (v >= floor)
+            words = flag[:(n + 7) // 8 * 8].view(np.uint64)
+            base = y * W + border
+            for q in range(words.shape[0]):
+                if words[q] != 0:
+                    for x in range(q * 8, min(q * 8 + 8, n)):
+                        if flag[x]:
+                            idx[count] = base + x
+                            val[count] = seg[x]
+                            count += 1
         return count, peak
 
     @_jit
