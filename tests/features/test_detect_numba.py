@@ -96,6 +96,15 @@ def test_rgb_and_settings_match_torch(monkeypatch):
     _assert_same(ref, out)
 
 
+def test_non_contiguous_image_matches_torch(monkeypatch):
+    g = torch.Generator().manual_seed(8)
+    img = torch.rand(2, 1, 90, 70, generator=g).transpose(-1, -2)[:, :, 3:, :]  # (2, 1, 67, 90), strided
+    assert not img.is_contiguous()
+    ref, out = _both(detect, monkeypatch, img, max_features=100, grid=(2, 2))
+    assert ref[1].sum() > 20
+    _assert_same(ref, out)
+
+
 @pytest.mark.parametrize("value", [0.0, 0.5])
 def test_flat_image_gives_no_keypoints(value, monkeypatch):
     img = torch.full((2, 1, 48, 64), value)
