@@ -27,7 +27,7 @@ diagonal, so its float32 solution carries errors of ~10 %. That happens with few
 scenes of 3-40 features and up to 40 % outliers: 4 of 2000 items with a differing inlier set; of
 200-500 features: none in 1200; the refiner's 40 recorded calls: none, motions within 9e-6).
 
-:func:`solve_exact` returns ``None`` when an input value is bad (NaN in the points or ``K``, a
+:func:`solve_compiled` returns ``None`` when an input value is bad (NaN in the points or ``K``, a
 baseline <= 0, a negative weight, ``K`` not invertible): the caller then runs the torch path,
 whose checks raise the documented error. ``AVAILABLE`` is False when numba cannot be imported.
 """

@@ -574,6 +574,12 @@ def solve_ego_motion(
     damping = eps_like(points_prev)
     K = K.to(dtype)
     B, N, _ = points_prev.shape
+    if N == 0:  # no features: every item's fallback (RANSAC cannot draw from an empty set)
+        eye = torch.eye(4, dtype=dtype, device=points_prev.device).expand(B, 4, 4).clone()
+        zeros = points_prev.new_zeros(B)
+        return EgoMotion(eye, points_prev.new_zeros(B, 6), points_prev.new_zeros(B, 0),
+                         torch.zeros(B, dtype=torch.bool, device=points_prev.device),
+                         torch.zeros(B, dtype=torch.long, device=points_prev.device), zeros)
 
     disp, usable = _disparity_at(points_prev, disparity_prev.to(dtype), valid_prev)
     w = torch.ones_like(disp) if weights is None else weights.to(dtype)

@@ -168,11 +168,14 @@ def test_degenerate_items_flag_not_nan(monkeypatch):
     a, r = _both(monkeypatch, *_args(tr), min_features=61)
     _assert_same(a, r, torch.float32)
     assert not a.ok.any()
-    # no features at all (the torch path cannot index an empty set: compiled only)
+    # no features at all: both paths give every item's fallback
     empty = torch.zeros(2, 0, 2)
     for method in ("exact", "robust", "linear"):
-        e = solve_ego_motion(empty, empty, torch.zeros(2, 0), tr.K, tr.baseline, method=method)
-        assert not e.ok.any() and torch.equal(e.motion, torch.eye(4).expand(2, 4, 4)) and e.weights.shape == (2, 0)
+        for compiled in (True, False):
+            monkeypatch.setattr(solve, "_COMPILED_SOLVE", compiled)
+            e = solve_ego_motion(empty, empty, torch.zeros(2, 0), tr.K, tr.baseline, method=method)
+            assert not e.ok.any() and torch.equal(e.motion, torch.eye(4).expand(2, 4, 4))
+            assert e.weights.shape == (2, 0) and not e.twist.any() and not e.num_inliers.any()
 
 
 def test_batch_item_equals_alone():
