@@ -39,6 +39,7 @@ from ..features import build_pyramid, replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
 from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_regions
+from . import _fuse_numba
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
 from .predict import Prediction, predict_disparity
@@ -128,22 +129,41 @@ def _confidence(valid: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
     return valid.to(variance.dtype) / (1.0 + variance)
 
 
-def _hole_measurements(
-    hole: torch.Tensor, meas: StereoOutput, pred: Prediction, max_variance: float, background_margin: float | None
-) -> torch.Tensor:
-    """Which stereo measurements of the loop's holes are taken: ``(B, 1, H, W)`` bool.
+def _take_hole_measurements(
+    disparity: torch.Tensor,
+    variance: torch.Tensor,
+    valid: torch.Tensor,
+    outliers: torch.Tensor,
+    meas: StereoOutput,
+    pred: Prediction,
+    max_variance: float,
+    background_margin: float | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The loop's map with stereo measurements of its holes (``~valid``) taken: new ``(disparity, variance, valid,
+    outliers, confidence)``.
 
-    A valid measurement of a ``hole`` pixel is taken where its variance is at most ``max_variance``, or, with a
+    A valid measurement of a hole pixel is taken where its variance is at most ``max_variance``, or, with a
     ``background_margin``, where the pixel is one of the splat's holes (``pred.hole``, whose ``pred.disparity`` is
     the background fill of :func:`~egorefine.refine.fill_holes_background`) and the measurement lies at most
     ``background_margin`` px above that fill. A hole the motion uncovers shows the background, and the matcher's
     usual error there is the foreground's disparity spilling over the edge: a value on the background's side
-    of the fill is plausible even where the cost curve is flat.
+    of the fill is plausible even where the cost curve is flat. A taken pixel gets the measurement's value and
+    variance and a zero outlier count. Float32 CPU maps without gradient take one compiled pass
+    (:func:`egorefine.refine._fuse_numba.take_measurements`), others the same rule in torch.
     """
+    maps = (disparity, variance, outliers, meas.disparity, meas.variance, pred.disparity)
+    if (_fuse_numba.AVAILABLE and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in maps)
+            and not (torch.is_grad_enabled() and any(t.requires_grad for t in maps))):
+        return _fuse_numba.take_measurements(disparity, variance, valid, outliers, meas.disparity, meas.variance,
+                                             meas.valid, pred.disparity, pred.hole, max_variance, background_margin)
     take = meas.variance <= max_variance
     if background_margin is not None:
         take = take | (pred.hole & (meas.disparity <= pred.disparity + background_margin))
-    return hole & meas.valid & take
+    take = ~valid & meas.valid & take
+    variance = torch.where(take, meas.variance, variance)
+    valid = valid | take
+    return (torch.where(take, meas.disparity, disparity), variance, valid,
+            torch.where(take, torch.zeros_like(outliers), outliers), _confidence(valid, variance))
 
 
 def _sample(map_: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -515,6 +535,7 @@ class EgoMotionRefiner(nn.Module):
 
         disparity, variance, valid, outliers = pred.disparity, pred.variance, pred.valid, state.outlier_count
         confidence = pred.confidence
+        measure_holes = self.measure_holes and not stereo_ran and right is not None
         if stereo_ran:
             # 4. verify against fresh stereo and correct.
             why = "verification" if frame % self.verify_every == 0 else (
@@ -534,20 +555,16 @@ class EgoMotionRefiner(nn.Module):
                                   block_size=self.local_search_block, prior_valid=pred.valid)
             cor = self._correct(pred, meas, state.outlier_count, verification=False)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
-            confidence = _confidence(valid, variance)
-        if self.measure_holes and not stereo_ran and right is not None:
+            if not measure_holes:  # (the hole step computes it)
+                confidence = _confidence(valid, variance)
+        if measure_holes:
             # 4''. the holes the keyframe could not fill (disocclusions, regions entering the view): the matcher on
             # windows around them; a value enters where it is precise or on the background side of the hole's fill.
-            hole = ~valid
-            meas = match_stereo_regions(grey, right, hole, self.max_disparity, tile=_HOLE_TILE,
+            meas = match_stereo_regions(grey, right, ~valid, self.max_disparity, tile=_HOLE_TILE,
                                         min_fraction=_HOLE_SHARE,
                                         min_disparity=self.min_disparity, **self.stereo_options)
-            take = _hole_measurements(hole, meas, pred, self.max_hole_variance, self.hole_background_margin)
-            disparity = torch.where(take, meas.disparity, disparity)
-            variance = torch.where(take, meas.variance, variance)
-            outliers = torch.where(take, torch.zeros_like(outliers), outliers)
-            valid = valid | take
-            confidence = _confidence(valid, variance)
+            disparity, variance, valid, outliers, confidence = _take_hole_measurements(
+                disparity, variance, valid, outliers, meas, pred, self.max_hole_variance, self.hole_background_margin)
         # 5. keep the tracks, top up when they thin out.
         keypoints, weights = tracked.keypoints, tracked.weights
         live = (weights > 0).sum(1)

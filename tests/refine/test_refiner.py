@@ -324,12 +324,17 @@ def test_measure_holes_adds_accurate_values_where_the_view_changed():
     assert (both.disparity[extra] <= plain.disparity[extra] + 0.5).all()
 
 
-def test_hole_rule_takes_precise_or_background_side_values():
-    """Hand-made hole pixels: the variance rule, the background rule (splat holes only) and invalid matches."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_hole_rule_takes_precise_or_background_side_values(compiled, monkeypatch):
+    """Hand-made hole pixels: the variance rule, the background rule (splat holes only) and invalid matches; the
+    compiled pass and the torch rule give the same maps."""
+    from egorefine.refine import _fuse_numba
     from egorefine.refine.predict import Prediction
-    from egorefine.refine.refiner import _hole_measurements
+    from egorefine.refine.refiner import _take_hole_measurements
     from egorefine.stereo import StereoOutput
 
+    if not compiled:
+        monkeypatch.setattr(_fuse_numba, "AVAILABLE", False)
     # pixels: precise; flat cost below the fill; flat cost above it; invalid match; within the margin; flat cost in
     # a closed crack (not a splat hole: its value is no background fill)
     fill = torch.full((1, 1, 1, 6), 10.0)
@@ -337,15 +342,24 @@ def test_hole_rule_takes_precise_or_background_side_values():
     meas_v = torch.tensor([0.1, 1.0, 1.0, 0.1, 1.0, 1.0]).view(1, 1, 1, 6)
     meas_ok = torch.tensor([True, True, True, False, True, True]).view(1, 1, 1, 6)
     splat_hole = torch.tensor([True, True, True, True, True, False]).view(1, 1, 1, 6)
-    hole = torch.ones_like(splat_hole)
     meas = StereoOutput(meas_d, meas_ok, meas_v)
     pred = Prediction(fill, torch.full_like(fill, 100.0), splat_hole, ~splat_hole, torch.zeros_like(fill))
-    take = _hole_measurements(hole, meas, pred, max_variance=0.2, background_margin=0.5)
-    assert take.flatten().tolist() == [True, True, False, False, True, False]
-    take = _hole_measurements(hole, meas, pred, max_variance=0.2, background_margin=None)
-    assert take.flatten().tolist() == [True, False, False, False, False, False]
-    take = _hole_measurements(torch.zeros_like(hole), meas, pred, max_variance=0.2, background_margin=0.5)
-    assert not take.any()  # only pixels without a value are candidates
+    no_value = torch.zeros_like(splat_hole)
+    count = torch.full_like(fill, 2.0)
+
+    def take(valid, margin):
+        return _take_hole_measurements(fill, pred.variance, valid, count, meas, pred, 0.2, margin)
+
+    d, var, valid, cnt, conf = take(no_value, 0.5)
+    taken = [True, True, False, False, True, False]
+    assert valid.flatten().tolist() == taken
+    t = torch.tensor(taken).view(1, 1, 1, 6)
+    assert torch.equal(d, torch.where(t, meas_d, fill)) and torch.equal(var, torch.where(t, meas_v, pred.variance))
+    assert torch.equal(cnt, torch.where(t, 0.0, count)) and torch.equal(conf, torch.where(t, 1 / (1 + meas_v), 0.0))
+    assert take(no_value, None)[2].flatten().tolist() == [True, False, False, False, False, False]
+    d, var, valid, cnt, conf = take(~no_value, 0.5)  # only pixels without a value are candidates
+    assert valid.all() and torch.equal(d, fill) and torch.equal(cnt, count)
+    assert torch.equal(conf, torch.full_like(fill, 1 / 101))
 
 
 def test_measure_holes_skips_frames_without_right_image(small_seq):
