@@ -1,6 +1,7 @@
 """CPU inference path of :func:`egorefine.stereo.residual.match_residual`, compiled with numba.
 
-The torch path's formulas in float32, one band of rows at a time: each row's ``2 radius + 1`` planes
+The torch path's formulas in float32, one band of rows at a time: each row is x-Sobel prefiltered
+(:func:`egorefine.stereo.cost.prefilter_xsobel`'s operations) and its ``2 radius + 1`` planes
 of ``|L' - R'(warped)|`` are built once, when the row enters the window (a ring of the window's rows
 stays in cache), then every output row slides its column sums down, sums its window along the row and
 reads the winner, its neighbours, the runner-up and the texture sum while the row is in cache. The
@@ -28,6 +29,18 @@ _F = np.float32
 
 
 if AVAILABLE:
+
+    @_jit(inline="always")
+    def _xsobel_row(img, v, cap, out):
+        """Row ``v`` of :func:`egorefine.stereo.cost.prefilter_xsobel` of ``img`` (replicated borders, clipped to
+        ``[-cap, cap]``) into ``out``, with that function's float32 operations in its order."""
+        H, W = img.shape
+        a, b, c = img[max(v - 1, 0)], img[v], img[min(v + 1, H - 1)]
+        two = _F(2.0)
+        for x in range(W):
+            xl, xr = max(x - 1, 0), min(x + 1, W - 1)
+            g = ((a[xr] - a[xl]) + two * (b[xr] - b[xl])) + (c[xr] - c[xl])
+            out[x] = min(max(g, -cap), cap)
 
     @_jit(inline="always")
     def _diff_row(lrow, rrow, prow, okrow, radius, out, base, frac, first, inside, near):
@@ -76,15 +89,18 @@ if AVAILABLE:
                 out[j, x] = abs(lrow[x] - (v0 + f * (rrow[np.int64(x0) + 1] - v0)))
 
     @_jit
-    def _band(lp, rp, prior, ok, y0, y1, radius, r, parabola, uniq, t_need, flt, disparity, valid, variance):
-        """Output rows ``[y0, y1)`` of one image pair. ``flt``: ``(area * cost floor, eps, 1 + uniqueness)``.
+    def _band(left, right, cap, prior, ok, y0, y1, radius, r, parabola, uniq, t_need, flt, disparity, valid,
+              variance):
+        """Output rows ``[y0, y1)`` of one grey image pair, x-Sobel prefiltered here a row at a time (clip level
+        ``cap``). ``flt``: ``(area * cost floor, eps, 1 + uniqueness)``.
 
         The window's rows of difference planes are kept in a ring of ``2 r + 2`` slots, each row computed once when
         it enters the window: the ring (~120 kB at 640 px) stays in cache while the column sums slide down.
         """
-        H, W = lp.shape
+        H, W = left.shape
         n = 2 * radius + 1
         slots = 2 * r + 2
+        lrow, rrow = np.empty(W, np.float32), np.empty(W, np.float32)
         ring = np.empty((slots, n + 1, W), np.float32)
         top = _F(W - 1)
         base = np.empty(W, np.float32)
@@ -109,8 +125,9 @@ if AVAILABLE:
                 continue
             if y == max(y0, r):  # the band's first row: the window's rows, then their full column sums
                 for v in range(y - r, y + r + 1):
-                    _diff_row(lp[v], rp[v], prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside,
-                              near)
+                    _xsobel_row(left, v, cap, lrow)
+                    _xsobel_row(right, v, cap, rrow)
+                    _diff_row(lrow, rrow, prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside, near)
                 for j in range(n + 1):
                     col, row0 = cols[j], ring[(y - r) % slots, j]
                     for x in range(W):
@@ -121,7 +138,9 @@ if AVAILABLE:
                             col[x] += plane[x]
             else:  # slide down one row: one row enters, one leaves
                 v = y + r
-                _diff_row(lp[v], rp[v], prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside, near)
+                _xsobel_row(left, v, cap, lrow)
+                _xsobel_row(right, v, cap, rrow)
+                _diff_row(lrow, rrow, prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside, near)
                 for j in range(n + 1):
                     col, enter, leave = cols[j], ring[v % slots, j], ring[(y - r - 1) % slots, j]
                     for x in range(W):
@@ -175,15 +194,18 @@ if AVAILABLE:
                 varout[x] = var if keep else _F(INVALID_VARIANCE)
 
 
-def match_residual(lp: torch.Tensor, rp: torch.Tensor, prior: torch.Tensor, ok: torch.Tensor, radius: int,
+def match_residual(left: torch.Tensor, right: torch.Tensor, prior: torch.Tensor, ok: torch.Tensor, radius: int,
                    block: int, parabola: bool, uniqueness: float, texture: float, cost_floor: float,
-                   threads: int | None = None
+                   prefilter_cap: float, threads: int | None = None
                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The compiled residual search on prefiltered float32 CPU maps ``(B, 1, H, W)``; ``(disparity, valid,
-    variance)`` as :func:`egorefine.stereo.residual._match_residual_torch` returns them."""
-    b, _, h, w = lp.shape
+    """The compiled residual search on grey float32 CPU images ``(B, 1, H, W)`` (prefiltered inside the kernel: a
+    torch pass over the images would wake torch's OpenMP threads to spin beside it); ``(disparity, valid,
+    variance)`` as :func:`egorefine.stereo.residual._match_residual_torch` returns them for the prefiltered
+    images."""
+    b, _, h, w = left.shape
     threads = max(1, threads or torch.get_num_threads())
-    lpn, rpn = lp[:, 0].contiguous().numpy(), rp[:, 0].contiguous().numpy()
+    ln, rn = left[:, 0].contiguous().numpy(), right[:, 0].contiguous().numpy()
+    cap = np.float32(prefilter_cap)
     prn, okn = prior[:, 0].contiguous().numpy(), ok[:, 0].contiguous().numpy()
     disparity = np.empty((b, h, w), np.float32)
     valid = np.empty((b, h, w), np.bool_)
@@ -197,7 +219,7 @@ def match_residual(lp: torch.Tensor, rp: torch.Tensor, prior: torch.Tensor, ok: 
 
     def task(t: tuple[int, int, int]) -> None:
         i, y0, y1 = t
-        _band(lpn[i], rpn[i], prn[i], okn[i], y0, y1, radius, block // 2, parabola, uniqueness > 0, t_need, flt,
+        _band(ln[i], rn[i], cap, prn[i], okn[i], y0, y1, radius, block // 2, parabola, uniqueness > 0, t_need, flt,
               disparity[i], valid[i], variance[i])
 
     Workers(threads).map(task, tasks)

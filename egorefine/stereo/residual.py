@@ -112,14 +112,15 @@ def match_residual(
     grey_l, grey_r = to_grey(left), to_grey(right).to(left.dtype)
     prior = prior.to(left.dtype)
     ok = torch.ones_like(prior, dtype=torch.bool) if prior_valid is None else prior_valid.bool()
-    lp = prefilter_xsobel(grey_l, prefilter_cap)
-    rp = prefilter_xsobel(grey_r, prefilter_cap)
     opts = (int(radius), int(block_size), subpixel_fit == "parabola", float(uniqueness_ratio),
             float(texture_threshold))
     no_grad = not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad or prior.requires_grad))
     if (_COMPILED and _residual_numba.AVAILABLE and no_grad and left.device.type == "cpu"
             and left.dtype == torch.float32):
-        return StereoOutput(*_residual_numba.match_residual(lp, rp, prior, ok, *opts, cost_floor=_COST_FLOOR))
+        return StereoOutput(*_residual_numba.match_residual(grey_l, grey_r, prior, ok, *opts, cost_floor=_COST_FLOOR,
+                                                            prefilter_cap=float(prefilter_cap)))
+    lp = prefilter_xsobel(grey_l, prefilter_cap)
+    rp = prefilter_xsobel(grey_r, prefilter_cap)
     ok = ok & torch.isfinite(prior)
     return _match_residual_torch(lp, rp, torch.where(ok, prior, torch.zeros_like(prior)), ok, *opts)
 
