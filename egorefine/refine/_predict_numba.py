@@ -363,9 +363,10 @@ if AVAILABLE:
                 crow[x] = crow[x] if keep else _F(0.0)
 
     @_jit
-    def _edge_variance(d, valid, radius, y0, y1, out):
+    def _edge_variance(d, valid, radius, y0, y1, base, has_base, out):
         """Rows ``y0:y1`` of :func:`egorefine.refine.correct.edge_variance` for one batch item: ``(r / 2)^2`` with
-        ``r`` the spread of the valid disparities in the window (clipped at the borders), 0 where invalid. Window
+        ``r`` the spread of the valid disparities in the window (clipped at the borders), 0 where invalid, plus
+        ``base`` where ``has_base``. Window
         maxima and minima separably, rows then columns, each as a few passes over shifted slices (SIMD)."""
         H, W = d.shape
         lo_row, hi_row = max(0, y0 - radius), min(H, y1 + radius)
@@ -407,6 +408,10 @@ if AVAILABLE:
             for x in range(W):
                 spread = max(v_max[x] - v_min[x], _F(0.0)) if vrow[x] else _F(0.0)
                 orow[x] = spread * spread * _F(0.25)
+            if has_base:
+                brow = base[y]
+                for x in range(W):
+                    orow[x] = brow[x] + orow[x]
 
 
 _workspace_store = threading.local()
@@ -545,15 +550,18 @@ def finish_prediction(disparity: torch.Tensor, variance: torch.Tensor, valid: to
     Workers(threads).map(band, [(i, rows) for i in range(B) for rows in _bands(H, threads)])
 
 
-def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int,
+def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int, base: torch.Tensor | None = None,
                   threads: int | None = None) -> torch.Tensor:
-    """:func:`egorefine.refine.correct.edge_variance` of float32 CPU maps ``(B, H, W)`` (``valid`` bool): one
-    compiled pass instead of ~12 full-map torch ops (memory-bound: ~3 ms at 1242x375 on two threads, more in
-    the refiner's loop)."""
+    """:func:`egorefine.refine.correct.edge_variance` of float32 CPU maps ``(B, H, W)`` (``valid`` bool, ``base``
+    float32 or None): one compiled pass instead of ~12 full-map torch ops (memory-bound: ~3 ms at 1242x375 on two
+    threads, more in the refiner's loop)."""
     B, H, W = disparity.shape
     threads = max(1, threads or torch.get_num_threads())
     d, ok = disparity.numpy(), valid.numpy()
+    has_base = base is not None
+    bn = base.numpy() if has_base else d
     out = np.empty((B, H, W), np.float32)
-    Workers(threads).map(lambda job: _edge_variance(d[job[0]], ok[job[0]], radius, *job[1], out[job[0]]),
+    Workers(threads).map(lambda job: _edge_variance(d[job[0]], ok[job[0]], radius, *job[1], bn[job[0]], has_base,
+                                                    out[job[0]]),
                          [(i, rows) for i in range(B) for rows in _bands(H, threads)])
     return torch.from_numpy(out)

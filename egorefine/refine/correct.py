@@ -85,7 +85,13 @@ def _window_max(x: torch.Tensor, radius: int) -> torch.Tensor:
     return out
 
 
-def edge_variance(disparity: torch.Tensor, valid: torch.Tensor | None = None, kernel_size: int = 3) -> torch.Tensor:
+def edge_variance(
+    disparity: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    kernel_size: int = 3,
+    *,
+    base: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Variance of a disparity map's depth-edge ambiguity: ``(r / 2)^2`` with ``r`` the local range.
 
     ``r`` is the spread (max - min) of the valid disparities in the ``kernel_size`` window around each
@@ -97,9 +103,11 @@ def edge_variance(disparity: torch.Tensor, valid: torch.Tensor | None = None, ke
         disparity: ``(B, 1, H, W)`` px.
         valid: ``(B, 1, H, W)`` bool (None: all valid).
         kernel_size: odd window size.
+        base: ``(B, 1, H, W)`` px^2 the result is added to (a prediction's own variance), in the same pass.
 
     Returns:
-        ``(B, 1, H, W)`` px^2, >= 0, 0 where ``valid`` is False. Without gradient (a discrete neighbourhood test).
+        ``(B, 1, H, W)`` px^2, >= 0, 0 where ``valid`` is False (``base +`` that with ``base``). Without gradient (a
+        discrete neighbourhood test).
 
     >>> d = torch.tensor([[[[1.0, 1.0, 5.0, 5.0]]]])
     >>> edge_variance(d)
@@ -112,20 +120,30 @@ def edge_variance(disparity: torch.Tensor, valid: torch.Tensor | None = None, ke
         check_same_device(disparity, "disparity", valid=valid)
     if kernel_size < 1 or kernel_size % 2 == 0:
         raise ValueRangeError(f"kernel_size: must be a positive odd integer, got {kernel_size}")
+    if base is not None:
+        check_shape(base, ["B", "1", "H", "W"], "base", dims)
+        check_same_device(disparity, "disparity", base=base)
     with torch.no_grad():
         if valid is None:
             valid = torch.ones_like(disparity, dtype=torch.bool)
         valid = _as_bool(valid, disparity)
         if _predict_numba.AVAILABLE and disparity.dtype == torch.float32 and disparity.device.type == "cpu":
-            # the same maxima and minima compiled (one pass instead of ~12 memory-bound torch ops)
-            return _predict_numba.edge_variance(
-                disparity.detach()[:, 0].contiguous(), valid[:, 0].contiguous(), kernel_size // 2
+            # the same maxima and minima compiled (one pass instead of ~12 memory-bound torch ops); a base without
+            # gradient is added in the same pass
+            fold = base is not None and base.dtype == torch.float32 and not base.requires_grad
+            variance = _predict_numba.edge_variance(
+                disparity.detach()[:, 0].contiguous(), valid[:, 0].contiguous(), kernel_size // 2,
+                base[:, 0].contiguous() if fold else None,
             )[:, None]
-        big = torch.finfo(disparity.dtype).max / 4
-        hi = _window_max(disparity.masked_fill(~valid, -big), kernel_size // 2)
-        lo = _window_max((-disparity).masked_fill(~valid, -big), kernel_size // 2)
-        spread = (hi + lo).clamp_min_(0).mul_(valid)  # max - min; a valid pixel sees itself, so both are finite
-        return spread.square_().mul_(0.25)
+            if base is None or fold:
+                return variance
+        else:
+            big = torch.finfo(disparity.dtype).max / 4
+            hi = _window_max(disparity.masked_fill(~valid, -big), kernel_size // 2)
+            lo = _window_max((-disparity).masked_fill(~valid, -big), kernel_size // 2)
+            spread = (hi + lo).clamp_min_(0).mul_(valid)  # max - min; a valid pixel sees itself, so both are finite
+            variance = spread.square_().mul_(0.25)
+    return variance if base is None else base + variance
 
 
 def _as_bool(x: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:

@@ -441,7 +441,7 @@ class EgoMotionRefiner(nn.Module):
         kalman = self.fusion == "kalman"
         pred_var = pred.variance
         if kalman and self.edge_aware:
-            pred_var = pred_var + edge_variance(pred.disparity, pred.valid, self.edge_kernel)
+            pred_var = edge_variance(pred.disparity, pred.valid, self.edge_kernel, base=pred_var)
         return correct_disparity(
             pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
             predicted_variance=pred_var, measured_variance=meas.variance, predicted_valid=pred.valid,

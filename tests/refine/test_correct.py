@@ -203,6 +203,22 @@ def test_edge_variance_on_a_slanted_plane_with_a_box():
         edge_variance(d[None, None], valid)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])  # float32: the compiled pass on the CPU
+def test_edge_variance_adds_a_base_in_the_same_pass(dtype):
+    g = torch.Generator().manual_seed(3)
+    d = (4.0 + 3.0 * (torch.rand(2, 1, 9, 13, generator=g) > 0.7)).to(dtype)
+    valid = torch.rand(2, 1, 9, 13, generator=g) > 0.1
+    base = torch.rand(2, 1, 9, 13, generator=g).to(dtype)
+    alone = edge_variance(d, valid)
+    assert alone.max() > 2.0  # edges are there
+    assert torch.equal(edge_variance(d, valid, base=base), base + alone)
+    with_grad = base.clone().requires_grad_()
+    edge_variance(d, valid, base=with_grad).sum().backward()  # the base keeps its gradient
+    assert torch.equal(with_grad.grad, torch.ones_like(base))
+    with pytest.raises(ShapeError, match="base"):
+        edge_variance(d, valid, base=base[0])
+
+
 def test_edge_variance_lets_the_measurement_win_at_edges():
     # a prediction with a box edge one pixel off (columns 3 hold the box's 6 px instead of the plane's 3 px);
     # stereo measures the truth. With the edge term the Kalman update takes the measurement at the edge.
