@@ -29,18 +29,7 @@ _F = np.float32
 
 
 if AVAILABLE:
-
-    @_jit(inline="always")
-    def _xsobel_row(img, v, cap, out):
-        """Row ``v`` of :func:`egorefine.stereo.cost.prefilter_xsobel` of ``img`` (replicated borders, clipped to
-        ``[-cap, cap]``) into ``out``, with that function's float32 operations in its order."""
-        H, W = img.shape
-        a, b, c = img[max(v - 1, 0)], img[v], img[min(v + 1, H - 1)]
-        two = _F(2.0)
-        for x in range(W):
-            xl, xr = max(x - 1, 0), min(x + 1, W - 1)
-            g = ((a[xr] - a[xl]) + two * (b[xr] - b[xl])) + (c[xr] - c[xl])
-            out[x] = min(max(g, -cap), cap)
+    from ._sad_numba import xsobel_row
 
     @_jit(inline="always")
     def _diff_row(lrow, rrow, prow, okrow, radius, out, base, frac, first, inside, near):
@@ -125,8 +114,8 @@ if AVAILABLE:
                 continue
             if y == max(y0, r):  # the band's first row: the window's rows, then their full column sums
                 for v in range(y - r, y + r + 1):
-                    _xsobel_row(left, v, cap, lrow)
-                    _xsobel_row(right, v, cap, rrow)
+                    xsobel_row(left, v, cap, lrow)
+                    xsobel_row(right, v, cap, rrow)
                     _diff_row(lrow, rrow, prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside, near)
                 for j in range(n + 1):
                     col, row0 = cols[j], ring[(y - r) % slots, j]
@@ -138,8 +127,8 @@ if AVAILABLE:
                             col[x] += plane[x]
             else:  # slide down one row: one row enters, one leaves
                 v = y + r
-                _xsobel_row(left, v, cap, lrow)
-                _xsobel_row(right, v, cap, rrow)
+                xsobel_row(left, v, cap, lrow)
+                xsobel_row(right, v, cap, rrow)
                 _diff_row(lrow, rrow, prior[v], ok[v], radius, ring[v % slots], base, frac, first, inside, near)
                 for j in range(n + 1):
                     col, enter, leave = cols[j], ring[v % slots, j], ring[(y - r - 1) % slots, j]

@@ -15,6 +15,9 @@ path's; the sub-pixel fit and the variance repeat ``fast._tail``'s float32 opera
 order, so the outputs are equal (a test compares them). Bands of rows run as nogil kernels on a
 thread pool (:class:`egorefine.core._jit.Workers`); the output does not depend on the number of
 threads. Memory: a few rows of ``D x W`` int16 per thread, whatever the image size.
+The x-Sobel prefilter and the quantised, padded images the kernels read are built compiled too
+(:func:`_quantised`, the same float32 operations as ``fast._quantise``): torch passes over the images
+would wake torch's OpenMP threads, which then spin beside the kernels.
 
 ``AVAILABLE`` is False when numba cannot be imported; callers then use the torch path.
 """
@@ -27,9 +30,9 @@ import torch
 from ..core._jit import AVAILABLE, Workers
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
-from .fast import _INVALID, _QUANTISATION_VARIANCE, INVALID_VARIANCE, _quantise
+from .fast import _INVALID, _QUANTISATION_VARIANCE, INVALID_VARIANCE
 
-__all__ = ["AVAILABLE", "match_sad_compiled", "match_sad_windows"]
+__all__ = ["AVAILABLE", "match_sad_compiled", "match_sad_windows", "xsobel_row"]
 
 # rows per task: enough that a band's start-up (the window's first 2r + 1 rows) is small beside it,
 # few enough that two threads stay busy to the end
@@ -37,6 +40,33 @@ _MIN_BAND_ROWS = 16
 
 
 if AVAILABLE:
+
+    @_jit(inline="always")
+    def xsobel_row(img, v, cap, out):
+        """Row ``v`` of :func:`egorefine.stereo.cost.prefilter_xsobel` of ``img`` (replicated borders, clipped to
+        ``[-cap, cap]``) into ``out``, with that function's float32 operations in its order."""
+        H, W = img.shape
+        a, b, c = img[max(v - 1, 0)], img[v], img[min(v + 1, H - 1)]
+        two = np.float32(2.0)
+        for x in range(W):
+            xl, xr = max(x - 1, 0), min(x + 1, W - 1)
+            g = ((a[xr] - a[xl]) + two * (b[xr] - b[xl])) + (c[xr] - c[xl])
+            out[x] = min(max(g, -cap), cap)
+
+    @_jit
+    def _quantise_rows(grey, cap, unit, c, top, left, y0, y1, out):
+        """Rows ``y0:y1`` of :func:`egorefine.stereo.fast._quantise`'s padded int16 image ``out`` (replicated
+        borders: ``top`` rows above the image, ``left`` columns left of it): ``round(unit * g) + c`` clipped to
+        ``[0, 2c]``, ``g`` the clipped x-Sobel response and ``unit = 255 * scale`` (float32 operations)."""
+        H, W = grey.shape
+        row = np.empty(W, np.float32)
+        limit = np.float32(c)
+        for yp in range(y0, y1):
+            xsobel_row(grey, min(max(yp - top, 0), H - 1), cap, row)
+            q = out[yp]
+            for xp in range(q.shape[0]):
+                v = np.rint(row[min(max(xp - left, 0), W - 1)] * unit)
+                q[xp] = np.int16(min(max(v, -limit), limit) + limit)
 
     @_jit(inline="always")
     def _absdiff(a, b):
@@ -211,14 +241,29 @@ def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_
             torch.from_numpy(variance).unsqueeze(1))
 
 
+def _quantised(grey: torch.Tensor, cap: float, scale: int, r: int, left: int, threads: int | None = None
+               ) -> np.ndarray:
+    """:func:`egorefine.stereo.fast._quantise`'s padded int16 images ``(B, H + 2r, left + W + r)`` of grey float32
+    CPU images ``(B, 1, H, W)``, compiled (a torch pass over the images would wake torch's OpenMP threads to spin
+    beside the matcher's kernels)."""
+    b, _, h, w = grey.shape
+    g = grey.detach()[:, 0].contiguous().numpy()
+    out = np.empty((b, h + 2 * r, left + w + r), np.int16)
+    args = (np.float32(cap), np.float32(255.0 * scale), round(255.0 * scale * cap), r, left)
+    threads = max(1, threads or torch.get_num_threads())
+    Workers(threads).map(lambda job: _quantise_rows(g[job[0]], *args, *job[1], out[job[0]]),
+                         [(i, rows) for i in range(b) for rows in _bands(h + 2 * r, threads)])
+    return out
+
+
 def _setup(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float, scale: int,
            opts: dict) -> tuple:
     """Padded quantised images ``lq``, ``rq`` (see :func:`_band`) and the kernel's settings
     ``(guard, uniq, t_need, c_level, flt)``."""
     r = block // 2
     num = max_d - min_d
-    lq = _quantise(left.detach(), cap, scale, (r, r, r, r))[1][:, 0].numpy()
-    rq = _quantise(right.detach(), cap, scale, (r + max_d, r, r, r))[1][:, 0].numpy()
+    lq = _quantised(left, cap, scale, r, r)
+    rq = _quantised(right, cap, scale, r, r + max_d)
     area = float(block * block)
     uniq = opts["uniqueness_ratio"] > 0
     flt = np.array([1.0 / (255.0 * scale), opts["cost_floor"] * area, torch.finfo(torch.float32).eps * 16 * area,
