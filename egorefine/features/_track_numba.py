@@ -39,7 +39,7 @@ import torch
 from ..core._jit import AVAILABLE, Workers
 from ..core._jit import jit as _jit
 
-__all__ = ["AVAILABLE", "track_compiled"]
+__all__ = ["AVAILABLE", "track_compiled", "pyrdown"]
 
 _F = np.float32
 # Features per thread below which one thread does all (a hand-off to a pool thread costs tens of
@@ -50,6 +50,23 @@ _SLOT_STEP = 32
 
 
 if AVAILABLE:
+
+    @_jit
+    def _pyrdown(x, out):
+        """tracking._pyrdown of one image ``x (H, W)`` into ``out (ceil(H/2), ceil(W/2))``: the [1, 2, 1] / 4 taps
+        along columns, then rows, at even positions, borders repeated; its float32 operations in its order."""
+        H, W = x.shape
+        h, w = out.shape
+        rows = np.empty(W, np.float32)
+        two, sixteenth = np.float32(2.0), np.float32(0.0625)
+        for i in range(h):
+            a, b, c = x[max(2 * i - 1, 0)], x[2 * i], x[min(2 * i + 1, H - 1)]
+            for u in range(W):
+                rows[u] = (a[u] + c[u]) + two * b[u]
+            o = out[i]
+            for j in range(w):
+                left, mid, right = rows[max(2 * j - 1, 0)], rows[2 * j], rows[min(2 * j + 1, W - 1)]
+                o[j] = ((left + right) + two * mid) * sixteenth
 
     # reassociation and fused multiply-adds allowed: only for the float64 window correlations, whose order of
     # additions does not follow the torch path's anyway
@@ -553,3 +570,14 @@ def track_compiled(
         ok &= back_ok & (fb_error.numpy() <= np.float32(fb_threshold))
     # empty slots: pos kept the input keypoint, best (so score) is 0
     return torch.from_numpy(pos), weights * torch.from_numpy(ok).to(weights.dtype), torch.from_numpy(score), fb_error
+
+
+def pyrdown(x: torch.Tensor) -> torch.Tensor:
+    """``tracking._pyrdown`` of a float32 CPU image batch ``(B, 1, H, W)``, compiled (bit for bit: the same float32
+    operations); a torch pass would wake torch's OpenMP threads to spin beside the tracker's kernels."""
+    B, _, H, W = x.shape
+    xn = x.detach()[:, 0].contiguous().numpy()
+    out = np.empty((B, 1, (H + 1) // 2, (W + 1) // 2), np.float32)
+    for i in range(B):
+        _pyrdown(xn[i], out[i, 0])
+    return torch.from_numpy(out)

@@ -104,6 +104,9 @@ class TrackOutput(NamedTuple):
 # x_{l+1} = x_l / 2. This costs a fraction of kornia's pyrdown (5x5 blur and bilinear resize),
 # which matters here: the pyramid is a large part of the tracking time.
 def _pyrdown(x: torch.Tensor) -> torch.Tensor:
+    if (_COMPILED and _track_numba.AVAILABLE and x.device.type == "cpu" and x.dtype == torch.float32
+            and not (torch.is_grad_enabled() and x.requires_grad)):
+        return _track_numba.pyrdown(x)  # the same operations compiled
     # The border row/column is repeated by concatenation (cheaper than F.pad's replicate mode).
     x = torch.cat([x[..., :1, :], x, x[..., -1:, :]], dim=-2)
     rows = x[..., 0:-2:2, :] + x[..., 2::2, :] + 2 * x[..., 1:-1:2, :]

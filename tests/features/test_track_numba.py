@@ -151,3 +151,14 @@ def test_dispatch_condition(frames, monkeypatch):
     assert len(calls) == 1
     # the compiled path's copy of the torch path's subset padding
     assert _track_numba._SLOT_STEP == tracking._SLOT_STEP
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 37, 50), (1, 1, 1, 4), (1, 1, 5, 1), (1, 1, 1, 1)])
+def test_compiled_pyramid_equals_torch_path(shape, monkeypatch):
+    image = torch.rand(shape, generator=torch.Generator().manual_seed(1))
+    fast = build_pyramid(image, 4)
+    monkeypatch.setattr(tracking, "_COMPILED", False)
+    reference = build_pyramid(image, 4)
+    assert [p.shape for p in fast] == [p.shape for p in reference]
+    for a, b in zip(fast, reference, strict=True):
+        assert torch.equal(a, b)  # the same float32 operations in the same order
