@@ -448,8 +448,9 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
         threads: worker threads (None: ``torch.get_num_threads()``).
 
     Returns:
-        ``(disparity, variance, confidence, landed)`` each ``(B, H, W)``, as ``predict_disparity``'s fields (holes
-        filled or 0, ``hole_variance`` and confidence 0 on holes); None if ``d`` holds NaN or Inf.
+        ``(disparity, variance, confidence, landed, hole)`` each ``(B, H, W)``, as ``predict_disparity``'s fields
+        (holes filled or 0, ``hole_variance`` and confidence 0 on holes; ``hole = ~landed``); None if ``d`` holds
+        NaN or Inf.
     """
     B, H, W = d.shape
     threads = max(1, threads or torch.get_num_threads())
@@ -490,7 +491,8 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     if not all(item(i, workers.map) for i in range(B)):
         return None
     as_t = torch.from_numpy
-    return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed)
+    # (numpy's not: a torch op on a full map would wake torch's OpenMP threads beside the next kernels)
+    return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed), as_t(np.logical_not(landed))
 
 
 def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.Tensor, confidence: torch.Tensor,

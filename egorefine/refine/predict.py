@@ -413,9 +413,8 @@ def _predict(
         )
         if out is None:  # NaN or Inf in the disparity
             check_finite(disparity, "disparity")
-        est, out_var, confidence, landed = out
-        hole4 = ~landed[:, None]
-        return Prediction(est[:, None], out_var[:, None], hole4, ~hole4, confidence[:, None])
+        est, out_var, confidence, landed, hole = out
+        return Prediction(est[:, None], out_var[:, None], hole[:, None], landed[:, None], confidence[:, None])
     src_ok = d >= 0
     if valid is not None:
         src_ok = src_ok & valid[:, 0]
