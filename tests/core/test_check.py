@@ -78,6 +78,9 @@ def test_check_finite_finds_any_non_finite_entry(dtype, bad):
     x[2, 4, 6] = bad  # the last entry
     with pytest.raises(ValueRangeError, match="x: contains NaN or Inf"):
         check_finite(x, "x")
+    for view in (x.transpose(0, 2), x[1:, ::2, 2:]):  # strided views
+        with pytest.raises(ValueRangeError, match="x: contains NaN or Inf"):
+            check_finite(view, "x")
     x[2, 4, 6] = 0.5
     x[0, 0, 0] = bad  # the first
     with pytest.raises(ValueRangeError, match="x: contains NaN or Inf"):
