@@ -21,7 +21,6 @@ import sys
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from ..core import (
@@ -166,12 +165,23 @@ def _take_hole_measurements(
             torch.where(take, torch.zeros_like(outliers), outliers), _confidence(valid, variance))
 
 
-def _sample(map_: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples ``(B, N)`` of ``map_`` ``(B, 1, H, W)`` at pixel positions ``(B, N, 2)``."""
-    H, W = map_.shape[-2:]
-    scale = torch.tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)], device=points.device, dtype=points.dtype)
-    grid = (points * scale - 1.0)[:, :, None, :]
-    return F.grid_sample(map_, grid, mode="bilinear", padding_mode="border", align_corners=True)[:, 0, :, 0]
+def _sample(disparity: torch.Tensor, valid: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bilinear samples ``(B, N)`` of ``disparity`` ``(B, 1, H, W)`` at pixel positions ``(B, N, 2)`` (clamped to the
+    image), and whether all four pixels they blend are ``valid``: a gather of the four corners, not a pass over the
+    maps (a full-map torch op wakes torch's OpenMP threads, which then spin beside the compiled tracker)."""
+    B, _, H, W = disparity.shape
+    x, y = points.unbind(-1)
+    x0 = x.floor().clamp(0, max(W - 2, 0))
+    y0 = y.floor().clamp(0, max(H - 2, 0))
+    fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
+    first = (y0 * W + x0).long()
+    dx, dy = min(1, W - 1), min(1, H - 1) * W
+    idx = torch.stack([first, first + dx, first + dy, first + dy + dx], dim=-1).view(B, -1)
+    d = disparity.reshape(B, H * W).gather(1, idx).view(B, -1, 4)
+    ok = valid.reshape(B, H * W).gather(1, idx).view(B, -1, 4).all(-1)
+    top = d[..., 0] + fx * (d[..., 1] - d[..., 0])
+    bottom = d[..., 2] + fx * (d[..., 3] - d[..., 2])
+    return top + fy * (bottom - top), ok
 
 
 def _expected_positions(
@@ -182,10 +192,11 @@ def _expected_positions(
     K: torch.Tensor,
     baseline: torch.Tensor,
 ) -> torch.Tensor:
-    """Where ``keypoints`` land if the rig repeats ``motion`` (constant velocity): centres the track search."""
+    """Where ``keypoints`` land if the rig repeats ``motion`` (constant velocity): centres the track search.
+    Points whose four neighbouring pixels are not all valid keep their position."""
     H, W = disparity.shape[-2:]
-    d = _sample(disparity, keypoints)
-    ok = (_sample(valid.to(disparity.dtype), keypoints) > 0.99) & (d > 0)
+    d, ok = _sample(disparity, valid, keypoints)
+    ok = ok & (d > 0)
     depth = disparity_to_depth(d, K[:, 0, 0], baseline)
     points = transform_points(motion, unproject(keypoints, depth, K))
     moved = project(points, K)
