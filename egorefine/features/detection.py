@@ -14,9 +14,11 @@ well separated detections; a tracker calls it when the live count drops ("detect
 only when tracks thin out").
 
 For float32 CPU images with the Shi-Tomasi response (the refiner's case), the same steps run
-compiled (:mod:`egorefine.features._detect_numba`, numba): the same keypoints, weights and slots
-bit for bit, ~4x faster; ``_COMPILED = False`` switches it off. The torch path stays the reference
-for GPU tensors, float64 and Harris.
+compiled (:mod:`egorefine.features._detect_numba`, numba), ~5x faster: the same selection rule and
+formulas, agreeing with this path to float rounding (the same keypoints but for a rare swap of two
+nearly equal candidates; positions within ~1e-3 px; exact ties go by pixel index instead of
+``torch.topk``'s order); ``_COMPILED = False`` switches it off. The torch path stays the reference
+for GPU tensors, autograd, float64 and Harris.
 """
 
 from __future__ import annotations
@@ -282,7 +284,7 @@ def _detect(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     b, _, h, w = image.shape
     if _compiled_applies(image, response):
-        # the same steps compiled (egorefine.features._detect_numba): float32 CPU inference, same keypoints
+        # the same steps compiled (egorefine.features._detect_numba): float32 CPU inference, agreeing to rounding
         return _detect_numba.detect_compiled(
             to_grey(image), n, grid, nms_radius, quality, min_response, border, subpixel
         )
