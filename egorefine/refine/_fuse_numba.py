@@ -17,7 +17,7 @@ from ..core._jit import AVAILABLE, Workers
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 
-__all__ = ["AVAILABLE", "kalman_fuse", "take_measurements"]
+__all__ = ["AVAILABLE", "confidence", "kalman_fuse", "take_measurements"]
 
 _F = np.float32
 
@@ -72,6 +72,13 @@ if AVAILABLE:
             conf_out[i] = _F(1.0) / (_F(1.0) + v) if valid else _F(0.0)
 
 
+    @_jit
+    def _confidence(valid, variance, start, stop, out):
+        """Flat pixels ``[start, stop)``: ``1 / (1 + variance)`` where valid, else 0."""
+        for i in range(start, stop):
+            out[i] = _F(1.0) / (_F(1.0) + variance[i]) if valid[i] else _F(0.0)
+
+
 def kalman_fuse(e: torch.Tensor, s: torch.Tensor, m_ok: torch.Tensor, p_ok: torch.Tensor, P: torch.Tensor,
                 R: torch.Tensor, count: torch.Tensor, kalman_gate: float, reset_after: int, min_variance: float,
                 max_unverified_variance: float | None, threads: int | None = None
@@ -109,3 +116,14 @@ def take_measurements(disparity: torch.Tensor, variance: torch.Tensor, valid: to
     chunks = _bands(n, threads) if n >= 65536 else [(0, n)]
     Workers(threads).map(lambda c: _take(*flat, c[0], c[1], prm, has_margin, *outs), chunks)
     return tuple(torch.from_numpy(o).view(shape) for o in outs)
+
+
+def confidence(valid: torch.Tensor, variance: torch.Tensor, threads: int | None = None) -> torch.Tensor:
+    """``1 / (1 + variance)`` where ``valid`` (bool), else 0, of float32 CPU maps, in one pass."""
+    shape = variance.shape
+    v, var = valid.detach().contiguous().reshape(-1).numpy(), variance.detach().contiguous().reshape(-1).numpy()
+    out = np.empty(var.shape[0], np.float32)
+    threads = max(1, threads or torch.get_num_threads())
+    chunks = _bands(out.shape[0], threads) if out.shape[0] >= 65536 else [(0, out.shape[0])]
+    Workers(threads).map(lambda c: _confidence(v, var, c[0], c[1], out), chunks)
+    return torch.from_numpy(out).view(shape)

@@ -124,7 +124,11 @@ class RefinerOutput(NamedTuple):
 
 
 def _confidence(valid: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
-    """``1 / (1 + variance)`` on valid pixels, 0 elsewhere: the same meaning on every frame (as in predict)."""
+    """``1 / (1 + variance)`` on valid pixels, 0 elsewhere: the same meaning on every frame (as in predict).
+    Float32 CPU maps without gradient take a compiled pass (no full-map torch op to wake torch's OpenMP threads)."""
+    if (_fuse_numba.AVAILABLE and variance.dtype == torch.float32 and variance.device.type == "cpu"
+            and valid.dtype == torch.bool and not (torch.is_grad_enabled() and variance.requires_grad)):
+        return _fuse_numba.confidence(valid, variance)
     return valid.to(variance.dtype) / (1.0 + variance)
 
 
@@ -554,11 +558,13 @@ class EgoMotionRefiner(nn.Module):
             meas = self._stereo(grey, right, frame, why)
             cor = self._correct(pred, meas, state.outlier_count, verification=True)
             # Where the motion failed the prediction is meaningless: restart that item from stereo.
-            bad = (~ok)[:, None, None, None]
-            disparity = torch.where(bad, meas.disparity, cor.disparity)
-            variance = torch.where(bad, meas.variance, cor.variance)
-            valid = torch.where(bad, meas.valid, cor.valid)
-            outliers = torch.where(bad, torch.zeros_like(cor.outlier_count), cor.outlier_count)
+            disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
+            if not bool(ok.all()):
+                bad = (~ok)[:, None, None, None]
+                disparity = torch.where(bad, meas.disparity, disparity)
+                variance = torch.where(bad, meas.variance, variance)
+                valid = torch.where(bad, meas.valid, valid)
+                outliers = torch.where(bad, torch.zeros_like(outliers), outliers)
             confidence = _confidence(valid, variance)
         elif self.local_search and right is not None:
             # 4'. no stereo on this frame: a narrow residual search around the prediction corrects it.

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import egorefine.refine.correct as correct
-from egorefine.refine import correct_disparity
+from egorefine.refine import _fuse_numba, correct_disparity
 
 
 @pytest.mark.parametrize("options", [{}, {"max_unverified_variance": 0.0625},
@@ -39,3 +39,11 @@ def test_gradient_takes_the_torch_path():
     out = correct_disparity(e, e.detach() + 0.1, None, fusion="kalman")
     out.disparity.sum().backward()
     assert e.grad is not None and torch.isfinite(e.grad).all()
+
+
+def test_compiled_confidence_equals_the_formula():
+    g = torch.Generator().manual_seed(4)
+    variance = torch.rand(2, 1, 300, 400, generator=g) * 3.0  # more pixels than one chunk: threads split it
+    valid = torch.rand(2, 1, 300, 400, generator=g) > 0.3
+    out = _fuse_numba.confidence(valid, variance)
+    assert torch.equal(out, valid.to(variance.dtype) / (1.0 + variance))  # bit for bit
