@@ -20,6 +20,7 @@ from __future__ import annotations
 import sys
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -577,7 +578,9 @@ class EgoMotionRefiner(nn.Module):
         if measure_holes:
             # 4''. the holes the keyframe could not fill (disocclusions, regions entering the view): the matcher on
             # windows around them; a value enters where it is precise or on the background side of the hole's fill.
-            meas = match_stereo_regions(grey, right, ~valid, self.max_disparity, tile=_HOLE_TILE,
+            # (numpy's not on the CPU: a full-map torch op would wake torch's OpenMP threads beside the matcher)
+            hole = torch.from_numpy(np.logical_not(valid.numpy())) if valid.device.type == "cpu" else ~valid
+            meas = match_stereo_regions(grey, right, hole, self.max_disparity, tile=_HOLE_TILE,
                                         min_fraction=_HOLE_SHARE,
                                         min_disparity=self.min_disparity, **self.stereo_options)
             disparity, variance, valid, outliers, confidence = _take_hole_measurements(

@@ -30,7 +30,6 @@ import inspect
 import cv2
 import numpy as np
 import torch
-from torch.nn import functional as F
 
 from ..core import ValueRangeError, check_shape, to_grey
 from . import _sad_numba, matching
@@ -77,8 +76,16 @@ def mask_boxes(
     """
     check_shape(mask, ["H", "W"], "mask")
     H, W = mask.shape
-    share = F.avg_pool2d(mask[None, None].float(), tile, tile, ceil_mode=True)[0, 0]
-    need = (share >= min_fraction).to(torch.uint8).cpu().numpy()
+    # each tile's share of mask pixels (tiles cut by the image border: of their pixels inside it), in numpy: a
+    # torch pass over the mask would wake torch's OpenMP threads to spin beside the matcher's kernels
+    m = mask.detach().cpu().numpy()
+    th, tw = -(-H // tile), -(-W // tile)
+    counts = np.zeros((th * tile, tw * tile), np.int32)
+    counts[:H, :W] = m
+    counts = counts.reshape(th, tile, tw, tile).sum(axis=(1, 3))
+    rows = np.minimum(tile, H - tile * np.arange(th))[:, None]
+    cols = np.minimum(tile, W - tile * np.arange(tw))[None, :]
+    need = (counts / (rows * cols) >= min_fraction).astype(np.uint8)
     if not need.any():
         return []
     # needed tiles that touch form one box
