@@ -284,7 +284,7 @@ class EgoMotionRefiner(nn.Module):
             benchmark's four sequences (60 frames, with ``local_search=2``, verify every 5) it raised density from
             0.975 / 0.983 / 0.976 / 0.945 to 0.987 / 0.995 / 0.988 / 0.983, at or above per-frame stereo's on each
             (0.984 / 0.994 / 0.988 / 0.980), while EPE rose by 0.001 to 0.005 px and bad-0.5 by 0.0002 to 0.0006,
-            for 7 to 18 ms per frame (more than half of a full stereo run: the holes are spread over the frame).
+            for 6 to 14 ms per frame (60 to 80 % of a full stereo run: the holes are spread over the frame).
             Frames given without a right image skip it.
 
     Example:
