@@ -172,6 +172,12 @@ def match_stereo_regions(
     extra = settings["block_size"] - 1
     boxes = [mask_boxes(mask[b, 0].bool(), tile, min_fraction, int(margin), extra) for b in range(B)]
     if not any(boxes):
+        if grey_l.device.type == "cpu" and grey_l.dtype in (torch.float32, torch.float64):
+            # numpy's fills: torch's would wake its OpenMP threads beside the refiner's next kernels
+            dtype = np.float32 if grey_l.dtype == torch.float32 else np.float64
+            return StereoOutput(torch.from_numpy(np.zeros(grey_l.shape, dtype)),
+                                torch.from_numpy(np.zeros(grey_l.shape, np.bool_)),
+                                torch.from_numpy(np.full(grey_l.shape, INVALID_VARIANCE, dtype)))
         return StereoOutput(torch.zeros_like(grey_l), torch.zeros_like(grey_l, dtype=torch.bool),
                             torch.full_like(grey_l, INVALID_VARIANCE))
     needs_grad = torch.is_grad_enabled() and (grey_l.requires_grad or grey_r.requires_grad)

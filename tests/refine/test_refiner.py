@@ -372,3 +372,37 @@ def test_measure_holes_skips_frames_without_right_image(small_seq):
         EgoMotionRefiner(max_hole_variance=0.0)
     with pytest.raises(ValueRangeError, match="hole_background_margin"):
         EgoMotionRefiner(hole_background_margin=-1.0)
+
+
+# aten ops that only make views or no-op conversions of a tensor (or gather a few of its values)
+_NO_PASS_OVER_THE_MAP = {
+    "aten::as_strided", "aten::detach", "detach", "aten::gather", "aten::lift_fresh", "aten::reshape",
+    "aten::resolve_conj", "aten::resolve_neg", "aten::select", "aten::slice", "aten::to", "aten::unsqueeze",
+    "aten::view", "aten::squeeze", "aten::expand", "aten::alias", "aten::_reshape_alias", "aten::contiguous",
+}
+
+
+@pytest.mark.parametrize("options", [{}, {"local_search": 2, "measure_holes": True}])
+def test_cpu_loop_runs_no_torch_pass_over_full_maps(small_seq, options):
+    """On float32 CPU tensors every full-image step of a frame runs in compiled kernels or numpy: a torch op over a
+    full map wakes torch's OpenMP threads, which then spin beside the next kernel (README, Method notes, "CPU
+    speed"). A structural check, not a timing: it lists the aten ops that read a tensor of an image's size."""
+    from egorefine.core import _jit
+
+    if not _jit.AVAILABLE:
+        pytest.skip("numba not installed")
+    from torch.profiler import ProfilerActivity, profile
+
+    K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
+    refiner = EgoMotionRefiner(verify_every=3, fusion="kalman", **SMALL, **options)
+    state = None
+    for t in range(2):
+        _, state = refiner(small_seq.left[t:t + 1], small_seq.right[t:t + 1], K, b, state)
+    H, W = small_seq.left.shape[-2:]
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        for t in range(2, len(small_seq.left)):  # frames with and without stereo
+            _, state = refiner(small_seq.left[t:t + 1], small_seq.right[t:t + 1], K, b, state)
+    full = {ev.name for ev in prof.events()
+            if any(isinstance(s, list) and s and torch.Size(s).numel() >= H * W for s in (ev.input_shapes or []))}
+    assert full, "the profiler recorded no op on a full map (nothing checked)"
+    assert full <= _NO_PASS_OVER_THE_MAP, f"torch passes over full maps: {sorted(full - _NO_PASS_OVER_THE_MAP)}"
