@@ -104,6 +104,7 @@ if AVAILABLE:
         c0, runner = np.empty(m, np.float32), np.empty(m, np.float32)
         cm, cp = np.empty(m, np.float32), np.empty(m, np.float32)
         best = np.empty(m, np.int32)
+        off, var = np.empty(m, np.float32), np.empty(m, np.float32)
         for y in range(y0, y1):
             drow, vrow, varrow = disparity[y], valid[y], variance[y]
             for x in range(W):
@@ -167,20 +168,23 @@ if AVAILABLE:
             prow, okrow = prior[y, r:r + m], ok[y, r:r + m]
             dout, vout, varout = drow[r:r + m], vrow[r:r + m], varrow[r:r + m]
             ratio = flt[2] if uniq else _F(0.0)  # runner < 0 never holds: the check is off
-            for x in range(m):
+            floor_area, eps = flt[0], flt[1]
+            for x in range(m):  # the sub-pixel fit and the variance: arithmetic only (a vector loop)
+                a0, am, ap = c0[x], cm[x], cp[x]
+                curvature = am - _F(2.0) * a0 + ap
+                denom = _F(2.0) * curvature if parabola else _F(2.0) * (max(am, ap) - a0)
+                off[x] = min(max((am - ap) / max(denom, eps), _F(-0.5)), _F(0.5))
+                q = (a0 + floor_area) / (max(curvature, _F(0.0)) + eps)
+                var[x] = min(_F(_QUANTISATION_VARIANCE) + _F(0.25) * (q * q), _F(INVALID_VARIANCE))
+            for x in range(m):  # the checks and the stores
                 p = prow[x]
                 xf = _F(x + r)
                 b = best[x]
                 keep = okrow[x] & np.isfinite(p) & (xf - p - _F(radius) >= _F(0.0)) & (xf - p + _F(radius) <= top)
                 keep = keep & (tsum[x] >= t_need) & (b > 0) & (b < n - 1) & (runner[x] >= ratio * c0[x])
-                curvature = cm[x] - _F(2.0) * c0[x] + cp[x]
-                denom = _F(2.0) * curvature if parabola else _F(2.0) * (max(cm[x], cp[x]) - c0[x])
-                offset = min(max((cm[x] - cp[x]) / max(denom, flt[1]), _F(-0.5)), _F(0.5))
-                q = (c0[x] + flt[0]) / (max(curvature, _F(0.0)) + flt[1])
-                var = min(_F(_QUANTISATION_VARIANCE) + _F(0.25) * (q * q), _F(INVALID_VARIANCE))
-                dout[x] = (p + _F(b - radius) + offset) if keep else _F(0.0)
+                dout[x] = (p + _F(b - radius) + off[x]) if keep else _F(0.0)
                 vout[x] = keep
-                varout[x] = var if keep else _F(INVALID_VARIANCE)
+                varout[x] = var[x] if keep else _F(INVALID_VARIANCE)
 
 
 def match_residual(left: torch.Tensor, right: torch.Tensor, prior: torch.Tensor, ok: torch.Tensor, radius: int,
