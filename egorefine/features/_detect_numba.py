@@ -42,7 +42,6 @@ import threading
 import numpy as np
 import torch
 
-from ..core import ValueRangeError
 from ..core._jit import AVAILABLE, Workers
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
@@ -142,16 +141,8 @@ if AVAILABLE:
         image (H, W >= 4).
 
         Rows ``y0 - 3 .. y1 + 2`` (mirrored at the image's edges) are blurred along x into a ring of seven rows
-        per product; each output row then takes its seven rows of the ring. Returns whether the image rows
-        ``[y0, y1)`` are all finite (the public entry point's check, without a full-image torch reduction)."""
+        per product; each output row then takes its seven rows of the ring."""
         H, W = img.shape
-        finite = True
-        for y in range(y0, y1):
-            row = img[y]
-            bad = False
-            for x in range(W):
-                bad |= (row[x] - row[x]) != 0  # NaN for NaN and Inf
-            finite &= not bad
         ring = np.empty((3, 7, W), np.float32)
         pxx = np.empty(W + 6, np.float32)
         pyy = np.empty(W + 6, np.float32)
@@ -166,7 +157,6 @@ if AVAILABLE:
             y = j - 3
             if y >= y0:
                 _vblur_response(ring, (y - y0) % 7, k, resp[y])
-        return finite
 
     @_jit(inline="always")
     def _larger(a, b):
@@ -458,8 +448,8 @@ def detect_compiled(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """detection._detect with the Shi-Tomasi response on a float32 CPU ``(B, 1, H, W)`` grey image, H, W >= 4.
 
-    Returns keypoints ``(B, n, 2)`` and weights ``(B, n)`` as :func:`egorefine.features.detect` does; raises
-    :class:`egorefine.core.ValueRangeError` (as ``check_finite`` words it) where the image holds NaN or Inf.
+    Returns keypoints ``(B, n, 2)`` and weights ``(B, n)`` as :func:`egorefine.features.detect` does (the caller
+    has checked the image's values).
     """
     from .detection import _subpixel_offsets
 
@@ -469,9 +459,7 @@ def detect_compiled(
     resp, idx, val = _SCRATCH.get(b, h, w)
     k = _gauss7()
     rows = _bands(h, max(1, min(threads, h // _MIN_BAND_ROWS)))
-    finite = _run(_response_rows, [(img[i], y0, y1, k, resp[i]) for i in range(b) for y0, y1 in rows], threads)
-    if not all(finite):
-        raise ValueRangeError("image: contains NaN or Inf")
+    _run(_response_rows, [(img[i], y0, y1, k, resp[i]) for i in range(b) for y0, y1 in rows], threads)
     tasks = [(resp[i], y0, y1, nms_radius, border, _F(min_response), idx[i * h * w + y0 * w:],
               val[i * h * w + y0 * w:]) for i in range(b) for y0, y1 in rows]
     found = _run(_nms_rows, tasks, threads)

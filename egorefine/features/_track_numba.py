@@ -53,20 +53,21 @@ if AVAILABLE:
 
     @_jit
     def _pyrdown(x, out):
-        """tracking._pyrdown of one image ``x (H, W)`` into ``out (ceil(H/2), ceil(W/2))``: the [1, 2, 1] / 4 taps
+        """tracking._pyrdown of images ``x (B, H, W)`` into ``out (B, ceil(H/2), ceil(W/2))``: the [1, 2, 1] / 4 taps
         along columns, then rows, at even positions, borders repeated; its float32 operations in its order."""
-        H, W = x.shape
-        h, w = out.shape
+        B, H, W = x.shape
+        h, w = out.shape[1:]
         rows = np.empty(W, np.float32)
         two, sixteenth = np.float32(2.0), np.float32(0.0625)
-        for i in range(h):
-            a, b, c = x[max(2 * i - 1, 0)], x[2 * i], x[min(2 * i + 1, H - 1)]
-            for u in range(W):
-                rows[u] = (a[u] + c[u]) + two * b[u]
-            o = out[i]
-            for j in range(w):
-                left, mid, right = rows[max(2 * j - 1, 0)], rows[2 * j], rows[min(2 * j + 1, W - 1)]
-                o[j] = ((left + right) + two * mid) * sixteenth
+        for n in range(B):
+            for i in range(h):
+                a, b, c = x[n, max(2 * i - 1, 0)], x[n, 2 * i], x[n, min(2 * i + 1, H - 1)]
+                for u in range(W):
+                    rows[u] = (a[u] + c[u]) + two * b[u]
+                o = out[n, i]
+                for j in range(w):
+                    left, mid, right = rows[max(2 * j - 1, 0)], rows[2 * j], rows[min(2 * j + 1, W - 1)]
+                    o[j] = ((left + right) + two * mid) * sixteenth
 
     # reassociation and fused multiply-adds allowed: only for the float64 window correlations, whose order of
     # additions does not follow the torch path's anyway
@@ -577,7 +578,6 @@ def pyrdown(x: torch.Tensor) -> torch.Tensor:
     operations); a torch pass would wake torch's OpenMP threads to spin beside the tracker's kernels."""
     B, _, H, W = x.shape
     xn = x.detach()[:, 0].contiguous().numpy()
-    out = np.empty((B, 1, (H + 1) // 2, (W + 1) // 2), np.float32)
-    for i in range(B):
-        _pyrdown(xn[i], out[i, 0])
-    return torch.from_numpy(out)
+    out = np.empty((B, (H + 1) // 2, (W + 1) // 2), np.float32)
+    _pyrdown(xn, out)
+    return torch.from_numpy(out)[:, None]

@@ -249,7 +249,7 @@ def detect(
     >>> kp.shape, w.shape
     (torch.Size([2, 50, 2]), torch.Size([2, 50]))
     """
-    _check_detect_image(image, response)
+    check_image(image, "image")
     check_choice(response, _RESPONSES, "response")
     check_choice(subpixel, _SUBPIXEL, "subpixel")
     _check_settings(max_features, tuple(grid), nms_radius, border)
@@ -257,17 +257,6 @@ def detect(
         return _detect(
             image, max_features, tuple(grid), response, nms_radius, quality, min_response, border, subpixel, k
         )
-
-
-def _check_detect_image(image: torch.Tensor, response: str) -> dict[str, int]:
-    """check_image, but a grey image bound for the compiled path is checked for NaN/Inf there, in its first pass
-    over the pixels (a full-image torch reduction here would wake torch's OpenMP threads, which then spin beside
-    the compiled kernels: ~0.9 ms of a ~2 ms detection at 640x480)."""
-    dims = check_shape(image, ["B", "1|3", "H", "W"], "image")
-    check_float(image, "image")
-    if not (image.shape[1] == 1 and _compiled_applies(image, response)):
-        check_finite(image, "image")
-    return dims
 
 
 def _detect(
@@ -440,7 +429,7 @@ def replenish(
     >>> kp.shape, w.shape
     (torch.Size([1, 10, 2]), torch.Size([1, 10]))
     """
-    dims = _check_detect_image(image, detect_kwargs.get("response", "gftt"))  # the rest in detect below
+    dims = check_image(image, "image")
     check_shape(keypoints, ["B", "N", "2"], "keypoints", dims)
     check_shape(weights, ["B", "N"], "weights", dims)
     check_float(keypoints, "keypoints")
@@ -456,7 +445,6 @@ def replenish(
         raise ValueRangeError(f"min_distance: expected a number >= 0, got {min_distance!r}")
     b = dims["B"]
     if m == 0 or b == 0:  # no slots to fill
-        check_finite(image, "image")
         return keypoints.clone(), weights.clone()
     if m > n:
         keypoints = F.pad(keypoints, (0, 0, 0, m - n))
