@@ -42,7 +42,7 @@ import torch
 from ..core import eps_like
 from ..core._jit import AVAILABLE
 from ..core._jit import jit as _jit
-from ..geometry.se3 import _SMALL_ANGLE
+from ..geometry.se3 import _SERIES_ANGLE_F64, _SMALL_ANGLE
 from . import _lm_numba
 from .robust import HUBER_K, TUKEY_C
 
@@ -50,6 +50,8 @@ __all__ = ["AVAILABLE", "solve_compiled"]
 
 # the robust kernels' constants (their codes are _lm_numba's)
 _KERNEL = {"l2": 1.0, "huber": HUBER_K, "tukey": TUKEY_C}
+# The SE(3) maps run in float64 here: their cancelling coefficients use float64's series range.
+_SERIES2 = _SERIES_ANGLE_F64**2
 
 if AVAILABLE:
     from ._lm_numba import _damped_step, _scale, _twist_exp, _weight, lm_item
@@ -246,10 +248,15 @@ if AVAILABLE:
         if t2 < small2:
             a = 1 - t2 / 6 + t2 * t2 / 120
             b = 0.5 - t2 / 24 + t2 * t2 / 720
-            c = 1 / 6 - t2 / 120 + t2 * t2 / 5040
         else:
             t = math.sqrt(t2)
-            a, b, c = math.sin(t) / t, (1 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
+            half = math.sin(0.5 * t) / t
+            a, b = math.sin(t) / t, 2 * half * half
+        if t2 < _SERIES2:
+            c = 1 / 6 - t2 / 120 + t2**2 / 5040 - t2**3 / 362880 + t2**4 / 39916800
+        else:
+            t = math.sqrt(t2)
+            c = (t - math.sin(t)) / (t2 * t)
         W = np.array([[0.0, -p2, p1], [p2, 0.0, -p0], [-p1, p0, 0.0]])
         rho = (r0, r1, r2)
         for r in range(3):
@@ -270,13 +277,13 @@ if AVAILABLE:
         sin = 0.5 * math.sqrt(max(v0 * v0 + v1 * v1 + v2 * v2, tiny))
         theta = math.atan2(sin, cos)
         t2 = theta * theta
-        if t2 < small2:
-            scale = 1 + t2 / 6 + 7 * t2 * t2 / 360
-            d = 1 / 12 + t2 / 720 + t2 * t2 / 30240
+        scale = 1 + t2 / 6 + 7 * t2 * t2 / 360 if t2 < small2 else theta / sin
+        if t2 < _SERIES2:
+            d = 1 / 12 + t2 / 720 + t2**2 / 30240 + t2**3 / 1209600 + t2**4 / 47900160
         else:
             t = math.sqrt(t2)
-            scale = theta / sin
-            d = (1 - (math.sin(t) / t) / (2 * ((1 - math.cos(t)) / t2))) / t2
+            half = math.sin(0.5 * t) / t
+            d = (1 - (math.sin(t) / t) / (4 * half * half)) / t2
         p0, p1, p2 = 0.5 * scale * v0, 0.5 * scale * v1, 0.5 * scale * v2
         W = np.array([[0.0, -p2, p1], [p2, 0.0, -p0], [-p1, p0, 0.0]])
         for r in range(3):
