@@ -406,3 +406,46 @@ def test_cpu_loop_runs_no_torch_pass_over_full_maps(small_seq, options):
             if any(isinstance(s, list) and s and torch.Size(s).numel() >= H * W for s in (ev.input_shapes or []))}
     assert full, "the profiler recorded no op on a full map (nothing checked)"
     assert full <= _NO_PASS_OVER_THE_MAP, f"torch passes over full maps: {sorted(full - _NO_PASS_OVER_THE_MAP)}"
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_expected_positions_move_features_with_the_motion(small_seq, compiled, monkeypatch):
+    """The constant-velocity centres of the track search, against the same geometry in float64: bilinear
+    disparity, Z = f B / d, the rigid motion, the projection; points on invalid or non-positive disparity or
+    landing outside the image keep their position."""
+    from egorefine.refine import _predict_numba
+    from egorefine.refine.refiner import _expected_positions
+
+    if not compiled:
+        monkeypatch.setattr(_predict_numba, "AVAILABLE", False)
+    d = small_seq.disparity[:1].clone()
+    H, W = d.shape[-2:]
+    valid = d > 0
+    valid[..., 40:60, 50:90] = False
+    g = torch.Generator().manual_seed(0)
+    kp = torch.rand(1, 400, 2, generator=g) * torch.tensor([W + 10.0, H + 10.0]) - 5  # some outside the image
+    motion = small_seq.motions[3:4] @ small_seq.motions[3:4]  # two frame steps: points near the border leave
+    K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
+    out = _expected_positions(kp, d, valid, motion, K, b)
+
+    x, y = kp[0].double().unbind(-1)
+    x0 = x.floor().clamp(0, W - 2)
+    y0 = y.floor().clamp(0, H - 2)
+    i, j = x0.long(), y0.long()
+    corners = [(j, i), (j, i + 1), (j + 1, i), (j + 1, i + 1)]
+    dm, vm = d[0, 0].double(), valid[0, 0]
+    c = [dm[r, q] for r, q in corners]
+    ok = torch.stack([vm[r, q] for r, q in corners]).all(0)
+    wx, wy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
+    disp = (c[0] * (1 - wx) + c[1] * wx) * (1 - wy) + (c[2] * (1 - wx) + c[3] * wx) * wy
+    Kd = K[0].double()
+    Z = Kd[0, 0] * small_seq.baseline / disp
+    P = torch.stack([(x - Kd[0, 2]) / Kd[0, 0] * Z, (y - Kd[1, 2]) / Kd[1, 1] * Z, Z, torch.ones_like(Z)])
+    Q = motion[0].double() @ P
+    u, v = Kd[0, 0] * Q[0] / Q[2] + Kd[0, 2], Kd[1, 1] * Q[1] / Q[2] + Kd[1, 2]
+    moves = ok & (disp > 0) & (Q[2] > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    assert 150 < int(moves.sum()) < 400  # both kinds are exercised
+    moved = (out[0] != kp[0]).any(-1)
+    assert torch.equal(moved, moves)
+    torch.testing.assert_close(out[0][moves].double(), torch.stack([u, v], -1)[moves], atol=2e-3, rtol=0)
+    assert torch.equal(out[0][~moves], kp[0][~moves])
