@@ -21,16 +21,20 @@ except ImportError:  # pragma: no cover - exercised by the fallback tests throug
 AVAILABLE = numba is not None
 
 
-def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False):
+def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False, error_model: str = "python"):
     """``numba.njit(cache=True, nogil=True)``, by default without fast-math (the kernels repeat the torch path's
     float32 operations; ``fastmath`` takes numba's flags for a kernel whose order of additions need not follow
-    it); without a writable cache location numba cannot cache, so it only compiles."""
+    it); without a writable cache location numba cannot cache, so it only compiles.
+
+    ``error_model="numpy"`` lets a float division by zero give inf or NaN as in numpy instead of raising: the
+    check numba otherwise puts in front of every division keeps a loop with one from becoming SIMD code."""
     if fn is None:
-        return lambda f: jit(f, inline, fastmath)
+        return lambda f: jit(f, inline, fastmath, error_model)
+    options = dict(nogil=True, fastmath=fastmath, inline=inline, error_model=error_model)
     try:
-        return numba.njit(cache=True, nogil=True, fastmath=fastmath, inline=inline)(fn)
+        return numba.njit(cache=True, **options)(fn)
     except RuntimeError:  # "cannot cache function ...: no locator available"
-        return numba.njit(cache=False, nogil=True, fastmath=fastmath, inline=inline)(fn)
+        return numba.njit(cache=False, **options)(fn)
 
 
 def bands(n: int, parts: int) -> list[tuple[int, int]]:

@@ -258,14 +258,15 @@ def test_validity_rule_settings_are_checked():
     EgoMotionRefiner(max_unverified_variance=None, edge_aware=False)  # the rules off: the loop as before them
 
 
-@pytest.mark.parametrize("fusion", ["kalman", "paper"])
-def test_local_search_corrects_a_wrong_keyframe(small_seq, fusion):
+@pytest.mark.parametrize(("fusion", "window"), [("kalman", "fronto"), ("paper", "fronto"), ("kalman", "warped")])
+def test_local_search_corrects_a_wrong_keyframe(small_seq, fusion, window):
     """A keyframe 1 px off is carried by prediction alone; the +-2 px residual search pulls it back."""
     K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
     truth = small_seq.disparity
     errors = {}
     for radius in (0, 2):
-        refiner = EgoMotionRefiner(verify_every=10, fusion=fusion, local_search=radius, **SMALL)
+        refiner = EgoMotionRefiner(verify_every=10, fusion=fusion, local_search=radius, local_search_window=window,
+                                   **SMALL)
         out, state = refiner(small_seq.left[:1], small_seq.right[:1], K, b, None)
         key = state.key_disparity + 1.0
         state = state._replace(key_disparity=key, disparity=key)
@@ -291,6 +292,8 @@ def test_local_search_needs_right_images_only_when_given(small_seq):
         EgoMotionRefiner(local_search=1)
     with pytest.raises(ValueRangeError, match="local_search_block"):
         EgoMotionRefiner(local_search=2, local_search_block=4)
+    with pytest.raises(ValueRangeError, match="local_search_window"):
+        EgoMotionRefiner(local_search=2, local_search_window="slanted")
 
 
 def test_measure_holes_adds_accurate_values_where_the_view_changed():
