@@ -255,8 +255,10 @@ class EgoMotionRefiner(nn.Module):
             :func:`~egorefine.refine.correct_disparity`'s own defaults (3 sigmas, 2 in a row) on purpose. On the
             refine benchmark's sequences (60 frames, seed 0; EPE / bad-0.5, mean of each rig's two sequences) at
             verify_every=5, 1 sigma against 2: Kalman 0.0507/0.0062 against 0.0513/0.0067 on the paper rig; with
-            ``local_search=2, measure_holes=True`` 0.0553/0.0058 against 0.0556/0.0060 (paper rig) and
-            0.0939/0.0094 against 0.0944/0.0096 (KITTI-like); at verify_every=1 within 0.0001 of each other.
+            ``local_search=2, measure_holes=True`` (and the warped ``local_search_window`` of the time)
+            0.0553/0.0058 against 0.0556/0.0060 (paper rig) and 0.0939/0.0094 against 0.0944/0.0096 (KITTI-like);
+            at verify_every=1 within 0.0001 of each other. With the fronto window (the default), 1 sigma against 2:
+            0.0494/0.00527 against 0.0496/0.00536 (paper rig), 0.0966/0.00925 against 0.0970/0.00933 (KITTI-like).
             0.5 sigma is worse (EPE 0.0584 with local search and holes, paper rig), 1.5 in between.
         edge_aware, edge_kernel: Kalman mode adds :func:`~egorefine.refine.correct.edge_variance` (the squared half
             range of the prediction over an ``edge_kernel`` window) to the predicted variance at verification: at
@@ -311,9 +313,11 @@ class EgoMotionRefiner(nn.Module):
             (0.984 / 0.994 / 0.988 / 0.980), while EPE rose by 0.001 to 0.005 px and bad-0.5 by 0.0002 to 0.0006,
             for 6 to 14 ms per frame (60 to 80 % of a full stereo run: the holes are spread over the frame).
             Stricter acceptance trades density for bad-0.5 along one curve (paper rig, the same sequences, mean of
-            two, verify every 5): the defaults give 0.0058 at density 0.9910, ``hole_background_margin=None``
-            0.0055 at 0.9889, with ``max_hole_variance=0.15`` as well 0.0054 at 0.9873; per-frame stereo has
-            0.0054 at 0.9886. The defaults keep the KITTI-like rig's density above per-frame stereo's.
+            two, verify every 5, measured with the warped ``local_search_window`` of the time): the defaults gave
+            0.0058 at density 0.9910, ``hole_background_margin=None`` 0.0055 at 0.9889, with
+            ``max_hole_variance=0.15`` as well 0.0054 at 0.9873; per-frame stereo has 0.0054 at 0.9886. With the
+            fronto window the defaults give 0.0053 at 0.9910. The defaults keep the KITTI-like rig's density above
+            per-frame stereo's.
             Frames given without a right image skip it.
 
     Example:
