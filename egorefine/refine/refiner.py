@@ -281,7 +281,7 @@ class EgoMotionRefiner(nn.Module):
             range (5 of 128 on the KITTI-like rig) and catches keyframe errors that grow as the rig approaches a
             surface (a disparity error scales with the square of the magnification), which prediction alone
             carries on. Hole-filled pixels are not searched: on the benchmark scenes their background fill made
-            poor priors (EPE 0.064 to 0.083 px on the corridor sequence when they were).
+            poor priors (EPE 0.064 to 0.083 px on the corridor sequence when they were; warped window).
         local_search_window: the residual search's window (``window`` of :func:`~egorefine.stereo.match_residual`):
             ``"fronto"`` scores the matcher's fronto-parallel window at the integer disparities
             ``round(prediction) + k``, so inside its band it makes the full matcher's decisions; ``"warped"`` shifts
@@ -309,9 +309,9 @@ class EgoMotionRefiner(nn.Module):
             shows the background, and the matcher's usual error there reads the foreground's disparity: values on the
             background side are plausible even where the cost curve is flat. Off by default: on the refine
             benchmark's four sequences (60 frames, with ``local_search=2``, verify every 5) it raised density from
-            0.975 / 0.983 / 0.976 / 0.945 to 0.987 / 0.995 / 0.988 / 0.983, at or above per-frame stereo's on each
-            (0.984 / 0.994 / 0.988 / 0.980), while EPE rose by 0.001 to 0.005 px and bad-0.5 by 0.0002 to 0.0006,
-            for 6 to 14 ms per frame (60 to 80 % of a full stereo run: the holes are spread over the frame).
+            0.975 / 0.983 / 0.975 / 0.945 to 0.987 / 0.995 / 0.988 / 0.983, at or above per-frame stereo's on each
+            (0.984 / 0.994 / 0.988 / 0.980), while EPE rose by 0.001 to 0.005 px and bad-0.5 by 0.0002 to 0.0007,
+            for 5 to 17 ms per frame (60 to 95 % of a full stereo run: the holes are spread over the frame).
             Stricter acceptance trades density for bad-0.5 along one curve (paper rig, the same sequences, mean of
             two, verify every 5, measured with the warped ``local_search_window`` of the time): the defaults gave
             0.0058 at density 0.9910, ``hole_background_margin=None`` 0.0055 at 0.9889, with

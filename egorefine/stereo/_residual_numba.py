@@ -1,12 +1,17 @@
 """CPU inference path of :func:`egorefine.stereo.residual.match_residual`, compiled with numba.
 
-The torch path's formulas in float32, one band of rows at a time: each row is x-Sobel prefiltered
-(:func:`egorefine.stereo.cost.prefilter_xsobel`'s operations) and its ``2 radius + 1`` planes
-of ``|L' - R'(warped)|`` are built once, when the row enters the window (a ring of the window's rows
-stays in cache), then every output row slides its column sums down, sums its window along the row and
-reads the winner, its neighbours, the runner-up and the texture sum while the row is in cache. The
-sums are added in another order than ``avg_pool2d``'s, so the costs agree to float32 rounding, not
-bit for bit. Bands of a fixed number of rows run as nogil kernels on
+The torch path's formulas in float32, one band of rows at a time, for either window:
+
+* ``"warped"`` (:func:`_band`): each row is x-Sobel prefiltered (:func:`egorefine.stereo.cost.prefilter_xsobel`'s
+  operations) and its ``2 radius + 1`` planes of ``|L' - R'(warped)|`` are built once, when the row enters the
+  window (a ring of the window's rows stays in cache); every output row slides its column sums down and sums its
+  window along the row;
+* ``"fronto"`` (:func:`_fronto_band`): per output row, the window costs of each disparity some pixel needs, over
+  the runs of pixels that need it, then each pixel's own candidates.
+
+Both then read the winner, its neighbours, the runner-up and the texture sum while the row is in cache
+(:func:`_decide_row`). The sums are added in another order than ``avg_pool2d``'s, so the costs agree to float32
+rounding, not bit for bit. Bands of a fixed number of rows run as nogil kernels on
 :class:`egorefine.core._jit.Workers`; the output does not depend on the thread count.
 """
 
