@@ -26,6 +26,21 @@ def _table(rows: list[list[object]], header: list[str]) -> str:
     return "\n".join([line, "-" * len(line), *body])
 
 
+def _at_least(minimum: int):
+    """An argparse type: an int no smaller than ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
 def _demo(args: argparse.Namespace) -> int:
     from .data import render_sequence
     from .metrics import distinct_levels, evaluate_disparity
@@ -120,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="egorefine", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="refine the built-in synthetic sequence and score it against ground truth")
-    demo.add_argument("--frames", type=int, default=30)
+    demo.add_argument("--frames", type=_at_least(2), default=30)
     demo.add_argument("--preset", default="paper", choices=["paper", "kitti"])
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--max-disparity", type=int, default=48)

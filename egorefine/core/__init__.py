@@ -12,6 +12,7 @@ from .check import (
 from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
 from .image import to_grey
 from .numerics import eps_like, safe_div
+from .progress import progress
 
 __all__ = [
     "check_choice",
@@ -28,6 +29,7 @@ __all__ = [
     "StateError",
     "ValueRangeError",
     "eps_like",
+    "progress",
     "safe_div",
     "to_grey",
 ]

@@ -13,13 +13,12 @@ camera frame (Y down, Z along the direction of travel); disparity ``d = x_left -
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ..core import ValueRangeError, check_choice
+from ..core import ValueRangeError, check_choice, progress
 from ._sequence import SequenceMixin
 from ._texture import make_texture
 
@@ -591,7 +590,7 @@ def _render_frames(renderer: _Renderer, poses: np.ndarray, f: float, B: float, n
     num_frames = len(poses)
     lefts, rights, depths, occs = [], [], [], []
     with torch.no_grad():
-        for i in range(num_frames):  # loop over frames
+        for i in progress(range(num_frames), desc="render_sequence", enabled=show_progress):
             pose_l = poses[i]
             pose_r = pose_l.copy()
             pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
@@ -608,10 +607,6 @@ def _render_frames(renderer: _Renderer, poses: np.ndarray, f: float, B: float, n
             rights.append(right.clamp(0.0, 1.0))
             depths.append(depth)
             occs.append(occluded)
-            if show_progress:
-                print(f"\rrender_sequence: frame {i + 1}/{num_frames}", end="", file=sys.stderr, flush=True)
-    if show_progress:
-        print(file=sys.stderr)
     return lefts, rights, depths, occs
 
 
@@ -642,7 +637,7 @@ def render_sequence(
         motion: a key of :data:`MOTIONS`.
         seed: seeds the trajectory phases, the scene layout, the surface textures and the noise.
         device, dtype: where and in which float type to render and return.
-        show_progress: print a frame counter to stderr.
+        show_progress: show a progress bar on stderr.
         height, width: override the image size; the focal length scales with ``width`` unless ``focal`` is given.
         focal: override the focal length in pixels.
         baseline: override the baseline in metres.

@@ -17,7 +17,6 @@ saved, inspected or detached.
 
 from __future__ import annotations
 
-import sys
 from typing import NamedTuple
 
 import numpy as np
@@ -33,6 +32,7 @@ from ..core import (
     check_image,
     check_positive,
     check_shape,
+    progress,
     to_grey,
 )
 from ..features import build_pyramid, replenish, track
@@ -704,7 +704,7 @@ def refine_sequence(
         rights: right images of the same shape (only verification frames are read).
         K: ``(B, 3, 3)`` (or ``(3, 3)``) intrinsics; baseline ``(B,)`` (or a float) metres.
         verify_every: stereo every i-th frame.
-        show_progress: print ``frame t/T`` to stderr.
+        show_progress: show a progress bar on stderr.
         refiner: a configured refiner to use instead of building one from ``options``.
         **options: keyword arguments of :class:`EgoMotionRefiner`.
 
@@ -724,11 +724,9 @@ def refine_sequence(
     refiner = EgoMotionRefiner(verify_every=verify_every, **options) if refiner is None else refiner
     outs = []
     state = None
-    for t in range(T):
+    for t in progress(range(T), desc="refine_sequence", enabled=show_progress):
         out, state = refiner(lefts[t], rights[t], K, baseline, state)
         outs.append(out)
-        if show_progress:
-            print(f"\rframe {t + 1}/{T}", end="" if t + 1 < T else "\n", file=sys.stderr, flush=True)
     return SequenceResult(
         torch.stack([o.disparity for o in outs]),
         torch.stack([o.valid for o in outs]),
