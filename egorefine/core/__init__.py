@@ -5,9 +5,12 @@ from .check import (
     check_finite,
     check_float,
     check_image,
+    check_intrinsics,
     check_positive,
     check_same_device,
+    check_same_dtype,
     check_shape,
+    check_variance,
 )
 from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
 from .image import to_grey
@@ -19,9 +22,12 @@ __all__ = [
     "check_finite",
     "check_float",
     "check_image",
+    "check_intrinsics",
     "check_positive",
     "check_same_device",
+    "check_same_dtype",
     "check_shape",
+    "check_variance",
     "DeviceError",
     "DTypeError",
     "EgorefineError",
