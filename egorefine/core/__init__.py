@@ -9,7 +9,16 @@ from .check import (
     check_same_device,
     check_shape,
 )
-from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
+from .errors import (
+    DataError,
+    DeviceError,
+    DTypeError,
+    EgorefineError,
+    MissingDataError,
+    ShapeError,
+    StateError,
+    ValueRangeError,
+)
 from .image import to_grey
 from .numerics import eps_like, safe_div
 from .progress import progress
@@ -22,9 +31,11 @@ __all__ = [
     "check_positive",
     "check_same_device",
     "check_shape",
+    "DataError",
     "DeviceError",
     "DTypeError",
     "EgorefineError",
+    "MissingDataError",
     "ShapeError",
     "StateError",
     "ValueRangeError",
