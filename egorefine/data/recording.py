@@ -208,7 +208,8 @@ def oxts_to_poses(oxts: np.ndarray) -> np.ndarray:
     Rz = np.stack([cy, -sy, zero, sy, cy, zero, zero, zero, one], -1).reshape(-1, 3, 3)
     poses = np.tile(np.eye(4), (len(oxts), 1, 1))
     poses[:, :3, :3] = Rz @ Ry @ Rx
-    poses[:, :3, 3] = np.stack([x, y, alt], -1)
+    t = np.stack([x, y, alt], -1)
+    poses[:, :3, 3] = t - t[0]  # relative first: Mercator metres are millions, their difference is what counts
     return np.linalg.inv(poses[0]) @ poses
 
 
