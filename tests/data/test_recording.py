@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from egorefine.core import DataError, EgorefineError, MissingDataError, ValueRangeError
+from egorefine.core import DataError, EgorefineError, MissingDataError, ShapeError, ValueRangeError
 from egorefine.data import LAYOUTS, StereoRecording, load_euroc, open_recording, oxts_to_poses
 
 from ._files import kitti_numbers, write_filestorage
@@ -89,12 +89,38 @@ def test_folders_rectified_kitti_calib_colour_frames(tmp_path) -> None:
     torch.testing.assert_close(right[0, 0, :, : W - DISP], left[0, 0, :, DISP:], atol=1 / 255, rtol=0)
 
 
-def test_folders_calib_elsewhere_and_frame_slice(tmp_path) -> None:
+def test_folders_calib_elsewhere_frame_slice_and_times(tmp_path) -> None:
     _write_pairs(tmp_path / "rec" / "cam0", tmp_path / "rec" / "cam1", 5)
+    (tmp_path / "rec" / "times.txt").write_text("".join(f"{100 + 0.5 * i}\n" for i in range(5)))
     calib = _aligned_rig(tmp_path / "stereo.json")
     rec = open_recording(tmp_path / "rec", "folders", calib=calib, frames=slice(1, None, 2))
     assert rec.names == ["000001", "000003"] and rec.baseline == pytest.approx(B)
     assert rec.left_files[0].name == "000001.png" and rec.right_files[1].name == "000003.png"
+    np.testing.assert_allclose(rec.timestamps, [100.5, 101.5])
+    (tmp_path / "rec" / "times.txt").write_text("1.0\n2.0\n")
+    with pytest.raises(DataError, match="times.txt has 2 time stamps, expected one per frame \\(5\\)"):
+        open_recording(tmp_path / "rec", "folders", calib=calib)
+
+
+@pytest.fixture
+def kitti_frame() -> Path:
+    """The real KITTI pair with its calibration beside the repository (../shared/data); skipped when absent."""
+    root = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti_velodyne_frame"
+    if not root.exists():
+        pytest.skip(f"KITTI frame not found at {root}")
+    return root
+
+
+def test_folders_real_kitti_frame(kitti_frame) -> None:
+    """The KITTI object layout's image_2/image_3 with its calib file: the colour pair's P2/P3."""
+    rec = open_recording(kitti_frame, "folders", calib=kitti_frame / "calib" / "000001.txt", camera="colour")
+    assert rec.rectified_input and rec.image_size == (375, 1242) and rec.names == ["0000000001"]
+    assert float(rec.K[0, 0]) == pytest.approx(721.5377) and rec.baseline == pytest.approx(0.53273, abs=1e-5)
+    left, right = rec[0]
+    assert left.shape == (1, 1, 375, 1242) and 0 <= float(left.min()) and float(left.max()) <= 1
+    assert float(left.std()) > 0.05 and not torch.equal(left, right)
+    with pytest.raises(MissingDataError, match="image_0/ \\+ image_1/ \\(camera='grey'\\)"):
+        open_recording(kitti_frame, "folders", calib=kitti_frame / "calib" / "000001.txt")
 
 
 def test_folders_image_size_from_first_frame(tmp_path) -> None:
@@ -209,6 +235,17 @@ def test_missing_calibration_and_empty_slice(tmp_path) -> None:
     _aligned_rig(tmp_path / "calib.yaml")
     with pytest.raises(DataError, match="frames: slice\\(5, None, None\\) selects no frame of the 2"):
         open_recording(tmp_path, "folders", frames=slice(5, None))
+
+
+def test_recording_checks_its_arguments(tmp_path) -> None:
+    files = [tmp_path / "a.png", tmp_path / "b.png"]
+    K = torch.from_numpy(_K())
+    with pytest.raises(ShapeError, match="names: expected one entry per frame \\(2\\), got 1"):
+        StereoRecording(files, files, K, B, (H, W), names=["a"])
+    with pytest.raises(ShapeError, match="poses: expected one entry per frame"):
+        StereoRecording(files, files, K, B, (H, W), names=["a", "b"], poses=torch.eye(4)[None])
+    with pytest.raises(ValueRangeError, match="baseline: expected > 0"):
+        StereoRecording(files, files, K, -B, (H, W), names=["a", "b"])
 
 
 def test_errors_are_typed() -> None:
