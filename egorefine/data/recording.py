@@ -14,10 +14,11 @@ Layouts (:data:`LAYOUTS`):
     stamps from ``path/times.txt`` (seconds, one line per frame) where present; no poses.
 ``kitti-raw``
     A synced and rectified drive, ``.../2011_09_26/2011_09_26_drive_0001_sync/``: ``image_00``/``image_01``
-    (grey) or ``image_02``/``image_03`` (colour) with ``data/*.png`` and ``timestamps.txt``;
+    (grey) or ``image_02``/``image_03`` (colour) with ``data/*.png`` and ``timestamps.txt`` (the left camera's,
+    else image_02's or image_00's: the synced cameras share a trigger);
     ``calib_cam_to_cam.txt`` in the drive folder or its parent (the date folder); poses from ``oxts/data/*.txt``
-    where present, with ``calib_imu_to_velo.txt`` and ``calib_velo_to_cam.txt`` beside the camera calibration
-    (poses None without them). The world frame is the first OXTS pose's, as in the KITTI devkit.
+    where present, with ``calib_imu_to_velo.txt`` and ``calib_velo_to_cam.txt`` (drive or date folder; poses
+    None without them). The world frame is the first OXTS pose's, as in the KITTI devkit.
 ``kitti-odometry``
     A sequence folder ``.../sequences/XX/``: ``calib.txt`` (``P0`` .. ``P3``), ``image_0``/``image_1`` (grey) or
     ``image_2``/``image_3`` (colour), ``times.txt``, and ``../../poses/XX.txt`` where present (camera 0's poses,
@@ -316,8 +317,10 @@ def _open_kitti_raw(path: Path, calib: str | os.PathLike | None, camera: str) ->
     size = cal.image_size or _size_of(left[0])
     out = dict(left_files=left, right_files=right, K=K, baseline=baseline, image_size=size, maps=maps,
                names=[f.stem for f in left])
-    stamps = path / f"image_{a:02d}" / "timestamps.txt"
-    if stamps.is_file():
+    # The synced cameras are triggered together: another camera's stamps stand in where the left's are missing.
+    stamps = [path / f"image_{c:02d}" / "timestamps.txt" for c in (a, 2, 0)]
+    stamps = next((f for f in stamps if f.is_file()), None)
+    if stamps is not None:
         out["timestamps"] = _kitti_timestamps(stamps)
         _check_count("time stamps", stamps, len(out["timestamps"]), len(left))
     imu_file, velo_file = _beside(path, "calib_imu_to_velo.txt"), _beside(path, "calib_velo_to_cam.txt")

@@ -300,7 +300,8 @@ def test_kitti_raw_poses_follow_the_encoded_drive(tmp_path) -> None:
     rec = open_recording(drive, "kitti-raw", camera="colour")
     assert len(rec) == 4 and rec.rectified_input and rec.image_size == (H, W)
     assert rec.baseline == pytest.approx(0.06 + 0.47) and rec.names[1] == "0000000001"
-    assert rec.timestamps is None  # image_02 has no timestamps.txt in this drive
+    # image_02 has no timestamps.txt in this drive: image_00's stand in.
+    assert rec.timestamps.shape == (4,) and np.diff(rec.timestamps) == pytest.approx([0.1] * 3, abs=1e-6)
     assert rec.poses.shape == (4, 4, 4) and rec.poses.dtype == torch.float64
     for k in range(4):
         R_world_imu = _rz(k * _YAW_RAD)
