@@ -24,8 +24,8 @@ Layouts (:data:`LAYOUTS`):
     ``image_2``/``image_3`` (colour), ``times.txt``, and ``../../poses/XX.txt`` where present (camera 0's poses,
     moved to the loaded left camera).
 ``euroc``
-    EuRoC MAV's ASL layout (``mav0/cam0``, ``mav0/cam1``, ground truth optional): see
-    :func:`egorefine.data.load_euroc`. Grey cameras only.
+    EuRoC MAV's ASL layout (``mav0/cam0``, ``mav0/cam1``, ground truth optional; ``path`` is the folder holding
+    ``mav0`` or ``mav0`` itself): see :func:`egorefine.data.load_euroc`. Grey cameras only.
 
 Every unrectified layout goes through :func:`egorefine.data.rectify_maps`.
 """
@@ -287,6 +287,8 @@ def _open_folders(path: Path, calib: str | os.PathLike | None, camera: str) -> d
 def _open_euroc(path: Path, calib: str | os.PathLike | None, camera: str) -> dict:
     if camera != "grey":
         raise ValueRangeError(f"camera: EuRoC has grey cameras only, got {camera!r}")
+    if not (path / "mav0").is_dir() and path.name == "mav0":
+        path = path.parent  # the mav0 folder itself was named
     index = _index_euroc(path)
     maps, K, baseline = rectify_maps(index.calib)
     poses = _rectified_poses(index.world_T_cam0, index.calib)

@@ -158,6 +158,7 @@ def test_euroc_without_ground_truth(euroc_root, tmp_path) -> None:
     root = _euroc_without_truth(euroc_root, tmp_path)
     rec = open_recording(root, "euroc")
     assert rec.poses is None and len(rec) == 40 and rec.timestamps.shape == (40,)
+    assert open_recording(euroc_root / "mav0", "euroc", frames=slice(0, 1)).poses.shape == (1, 4, 4)
     assert 0.105 < rec.baseline < 0.115
     seq = load_euroc(root, max_frames=2)
     assert seq.poses is None and seq.motions is None and seq.left.shape == (2, 1, 480, 752)
