@@ -12,7 +12,16 @@ from .check import (
     check_shape,
     check_variance,
 )
-from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
+from .errors import (
+    DataError,
+    DeviceError,
+    DTypeError,
+    EgorefineError,
+    MissingDataError,
+    ShapeError,
+    StateError,
+    ValueRangeError,
+)
 from .image import to_grey
 from .numerics import eps_like, safe_div
 from .progress import progress
@@ -28,9 +37,11 @@ __all__ = [
     "check_same_dtype",
     "check_shape",
     "check_variance",
+    "DataError",
     "DeviceError",
     "DTypeError",
     "EgorefineError",
+    "MissingDataError",
     "ShapeError",
     "StateError",
     "ValueRangeError",

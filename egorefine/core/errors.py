@@ -14,6 +14,8 @@ __all__ = [
     "DeviceError",
     "ValueRangeError",
     "StateError",
+    "DataError",
+    "MissingDataError",
 ]
 
 
@@ -39,3 +41,12 @@ class ValueRangeError(EgorefineError, ValueError):
 
 class StateError(EgorefineError, ValueError):
     """A carried state does not fit the current input (other resolution, device or batch)."""
+
+
+class DataError(EgorefineError, ValueError):
+    """A recording, image or calibration file is malformed: a frame that does not decode, a calibration that does
+    not parse or lacks a field, cameras that disagree (frame counts, image sizes)."""
+
+
+class MissingDataError(DataError, FileNotFoundError):
+    """A file or folder that a data layout needs is absent."""

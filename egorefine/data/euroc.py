@@ -6,10 +6,11 @@ Layout (``root``)::
     mav0/cam1/...                                                                (right)
     groundtruth/body_poses.csv  (#time(ns), px, py, pz, qw, qx, qy, qz, ...)   or
     mav0/state_groundtruth_estimate0/data.csv                                    (the dataset's original)
+                                                                   (ground truth optional: poses are then None)
 
 ``sensor.yaml`` gives ``T_BS`` (sensor-to-body), pinhole ``intrinsics`` (fu, fv, cu, cv) and radial-tangential
 ``distortion_coefficients``. The camera pose is ``T_WB @ T_BS``; after rectification it is expressed for the
-rectified left camera (``X_rect = R1 X_cam0``).
+rectified left camera (``X_rect = R1 X_cam0``). Rectification is :func:`egorefine.data.rectify_maps`'s.
 """
 
 from __future__ import annotations
@@ -19,12 +20,12 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
-from ..core import ValueRangeError
+from ..core import DataError, MissingDataError, ValueRangeError
 from ._sequence import SequenceMixin
+from .calib import StereoCalibration, _remap, _stereo_rectify, rectify_maps
 from .folder import read_grey
 
 __all__ = ["EurocSequence", "load_euroc", "read_euroc_sensor"]
@@ -41,7 +42,8 @@ class EurocSequence(SequenceMixin):
         left, right: ``(T, 1, H, W)`` grey images in [0, 1] (rectified unless loaded with ``rectify=False``).
         K: ``(3, 3)`` intrinsics of the rectified left camera (of raw cam0 when not rectified).
         baseline: metres.
-        poses: ``(T, 4, 4)`` ``world_T_camera`` of the rectified left camera (raw cam0 when not rectified).
+        poses: ``(T, 4, 4)`` ``world_T_camera`` of the rectified left camera (raw cam0 when not rectified); None
+            for a sequence without ground truth.
         timestamps: ``(T,)`` int64 nanoseconds.
     """
 
@@ -49,7 +51,7 @@ class EurocSequence(SequenceMixin):
     right: torch.Tensor
     K: torch.Tensor
     baseline: float
-    poses: torch.Tensor
+    poses: torch.Tensor | None
     timestamps: torch.Tensor
 
     def __repr__(self) -> str:
@@ -58,8 +60,11 @@ class EurocSequence(SequenceMixin):
                 f"dtype={self.left.dtype}, device={self.left.device})")
 
     @property
-    def motions(self) -> torch.Tensor:
-        """``(T, 4, 4)`` ``camera_t_T_camera_{t-1}`` from the ground-truth poses; identity at ``t = 0``."""
+    def motions(self) -> torch.Tensor | None:
+        """``(T, 4, 4)`` ``camera_t_T_camera_{t-1}`` from the ground-truth poses; identity at ``t = 0``; None
+        without ground truth."""
+        if self.poses is None:
+            return None
         m = torch.eye(4, dtype=self.poses.dtype, device=self.poses.device).repeat(len(self), 1, 1)
         if len(self) > 1:
             m[1:] = torch.linalg.inv(self.poses[1:]) @ self.poses[:-1]
@@ -74,12 +79,12 @@ def read_euroc_sensor(path: str | os.PathLike) -> dict[str, np.ndarray]:
     # "key: [numbers]" possibly spanning lines; T_BS's list is under its own "data:" key.
     block = re.search(r"T_BS:\s*\n(?:\s+\w+:.*\n)*?\s+data:\s*\[([^\]]*)\]", text)
     if block is None:
-        raise ValueRangeError(f"path: no T_BS block in {os.fspath(path)!r}")
+        raise DataError(f"path: no T_BS block in {os.fspath(path)!r}")
     lists["T_BS"] = np.array([float(v) for v in block.group(1).replace("\n", " ").split(",")]).reshape(4, 4)
     for key in ("intrinsics", "distortion_coefficients", "resolution"):
         m = re.search(rf"^{key}:\s*\[([^\]]*)\]", text, flags=re.MULTILINE)
         if m is None:
-            raise ValueRangeError(f"path: no {key} list in {os.fspath(path)!r}")
+            raise DataError(f"path: no {key} list in {os.fspath(path)!r}")
         lists[key] = np.array([float(v) for v in m.group(1).split(",")])
     return lists
 
@@ -96,8 +101,8 @@ def _read_frames(cam_dir: Path) -> dict[int, Path]:
     return out
 
 
-def _read_groundtruth(root: Path) -> list[tuple]:
-    """Rows ``(t_ns, px, py, pz, qw, qx, qy, qz)`` with the time as an exact int."""
+def _read_groundtruth(root: Path) -> list[tuple] | None:
+    """Rows ``(t_ns, px, py, pz, qw, qx, qy, qz)`` with the time as an exact int; None without a ground-truth file."""
     for rel in ("groundtruth/body_poses.csv", "mav0/state_groundtruth_estimate0/data.csv"):
         p = root / rel
         if p.is_file():
@@ -107,8 +112,10 @@ def _read_groundtruth(root: Path) -> list[tuple]:
                 if line and not line.startswith("#"):
                     parts = line.split(",")
                     rows.append((int(parts[0]), *(float(v) for v in parts[1:8])))
+            if not rows:
+                raise DataError(f"root: {p} holds no ground-truth rows")
             return rows
-    raise FileNotFoundError(f"root: no groundtruth/body_poses.csv or state_groundtruth_estimate0 under {root}")
+    return None
 
 
 def _quat_to_rot(q: np.ndarray) -> np.ndarray:
@@ -132,7 +139,7 @@ def _body_poses(rows: list, stamps: list[int]) -> np.ndarray:
             p, q = vals[near, :3], vals[near, 3:]
         else:
             if j == 0 or j == len(times):
-                raise ValueRangeError(f"root: no ground truth around frame time {ts} ns")
+                raise DataError(f"root: no ground truth around frame time {ts} ns")
             a = (ts - times[j - 1]) / float(times[j] - times[j - 1])
             p = (1 - a) * vals[j - 1, :3] + a * vals[j, :3]
             q0, q1 = vals[j - 1, 3:], vals[j, 3:]
@@ -143,43 +150,36 @@ def _body_poses(rows: list, stamps: list[int]) -> np.ndarray:
     return out
 
 
-def load_euroc(
-    root: str | os.PathLike,
-    max_frames: int | None = None,
-    rectify: bool = True,
-    device: torch.device | str | None = None,
-    dtype: torch.dtype = torch.float32,
-) -> EurocSequence:
-    """Load a EuRoC MAV stereo clip (ASL layout) with its ground-truth poses, rectified for stereo.
+@dataclass
+class _EurocIndex:
+    """What a EuRoC folder holds, before any image is read: synchronised frames, calibration, ground truth."""
 
-    Args:
-        root: folder holding ``mav0`` (and ``groundtruth/body_poses.csv``).
-        max_frames: keep at most this many of the first synchronised frames.
-        rectify: undistort and rectify both cameras with OpenCV (``stereoRectify``, zero-disparity principal
-            points, ``alpha = 0``: no invalid border); otherwise return the raw images with cam0's pinhole ``K``.
-        device, dtype: where and as what the tensors are returned.
+    stamps: list[int]
+    left: list[Path]
+    right: list[Path]
+    calib: StereoCalibration
+    world_T_cam0: np.ndarray | None  # (T, 4, 4); None without ground truth
 
-    Returns:
-        :class:`EurocSequence`.
-    """
-    root = Path(root)
+
+def _index_euroc(root: Path, max_frames: int | None = None) -> _EurocIndex:
     cams = [root / "mav0" / "cam0", root / "mav0" / "cam1"]
     for c in cams:
         if not (c / "data.csv").is_file() or not (c / "sensor.yaml").is_file():
-            raise FileNotFoundError(f"root: {c} lacks data.csv or sensor.yaml (expected the EuRoC ASL layout)")
+            raise MissingDataError(f"root: {c} lacks data.csv or sensor.yaml (expected the EuRoC ASL layout)")
     if max_frames is not None and max_frames < 1:
         raise ValueRangeError(f"max_frames: expected >= 1 or None, got {max_frames}")
     sensors = [read_euroc_sensor(c / "sensor.yaml") for c in cams]
     frames = [_read_frames(c) for c in cams]
     stamps = sorted(set(frames[0]) & set(frames[1]))
     gt_rows = _read_groundtruth(root)
-    gt_t0, gt_t1 = gt_rows[0][0], gt_rows[-1][0]
-    stamps = [s for s in stamps if gt_t0 - _TIME_TOLERANCE_NS <= s <= gt_t1 + _TIME_TOLERANCE_NS]
+    if gt_rows is not None:
+        gt_t0, gt_t1 = gt_rows[0][0], gt_rows[-1][0]
+        stamps = [s for s in stamps if gt_t0 - _TIME_TOLERANCE_NS <= s <= gt_t1 + _TIME_TOLERANCE_NS]
     if max_frames is not None:
         stamps = stamps[:max_frames]
     if not stamps:
-        raise ValueRangeError(f"root: no synchronised stereo frames with ground truth under {root}")
-
+        what = " with ground truth" if gt_rows is not None else ""
+        raise DataError(f"root: no synchronised stereo frames{what} under {root}")
     Ks, Ds = [], []
     for s in sensors:
         fu, fv, cu, cv = s["intrinsics"]
@@ -188,41 +188,66 @@ def load_euroc(
     w, h = (int(v) for v in sensors[0]["resolution"])
     # cam1_T_cam0 = inv(T_BS1) T_BS0: OpenCV's (R, T) map points of the first camera into the second.
     c1_T_c0 = np.linalg.inv(sensors[1]["T_BS"]) @ sensors[0]["T_BS"]
-    body = _body_poses(gt_rows, stamps)
-    world_T_cam0 = body @ sensors[0]["T_BS"]
+    calib = StereoCalibration(K1=Ks[0], D1=Ds[0], K2=Ks[1], D2=Ds[1], R=c1_T_c0[:3, :3], T=c1_T_c0[:3, 3],
+                              image_size=(h, w), source=f"{cams[0] / 'sensor.yaml'} + {cams[1] / 'sensor.yaml'}")
+    world_T_cam0 = None if gt_rows is None else _body_poses(gt_rows, stamps) @ sensors[0]["T_BS"]
+    return _EurocIndex(stamps=stamps, left=[frames[0][s] for s in stamps], right=[frames[1][s] for s in stamps],
+                       calib=calib, world_T_cam0=world_T_cam0)
 
-    lefts, rights = [], []
+
+def _rectified_poses(world_T_cam: np.ndarray | None, calib: StereoCalibration) -> np.ndarray | None:
+    """``world_T_rect`` of the rectified left camera from the raw left camera's poses (``X_rect = R1 X_cam``)."""
+    if world_T_cam is None:
+        return None
+    cam_T_rect = np.eye(4)
+    cam_T_rect[:3, :3] = _stereo_rectify(calib)[0].T
+    return world_T_cam @ cam_T_rect
+
+
+def load_euroc(
+    root: str | os.PathLike,
+    max_frames: int | None = None,
+    rectify: bool = True,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> EurocSequence:
+    """Load a EuRoC MAV stereo clip (ASL layout), rectified for stereo, with its ground-truth poses where present.
+
+    Args:
+        root: folder holding ``mav0`` (and, optionally, ``groundtruth/body_poses.csv``; with ground truth, only
+            frames inside its time span are kept).
+        max_frames: keep at most this many of the first synchronised frames.
+        rectify: undistort and rectify both cameras with :func:`egorefine.data.rectify_maps` (``stereoRectify``,
+            zero-disparity principal points, ``alpha = 0``: no invalid border); otherwise return the raw images
+            with cam0's pinhole ``K``.
+        device, dtype: where and as what the tensors are returned.
+
+    Returns:
+        :class:`EurocSequence`; its ``poses`` are None without ground truth.
+
+    Raises:
+        MissingDataError: ``root`` is not in the ASL layout, or a listed image is absent.
+        DataError: a sensor.yaml or image that does not parse; no synchronised frames.
+        ValueRangeError: ``max_frames < 1``.
+    """
+    index = _index_euroc(Path(root), max_frames)
+    calib = index.calib
     if rectify:
-        rot, trans = np.ascontiguousarray(c1_T_c0[:3, :3]), np.ascontiguousarray(c1_T_c0[:3, 3:4])
-        R1, R2, P1, P2, _, _, _ = cv2.stereoRectify(
-            Ks[0], Ds[0], Ks[1], Ds[1], (w, h), rot, trans,
-            flags=cv2.CALIB_ZERO_DISPARITY, alpha=0.0,
-        )
-        maps = [cv2.initUndistortRectifyMap(Ks[i], Ds[i], Rr, Pr, (w, h), cv2.CV_32FC1)
-                for i, (Rr, Pr) in enumerate(((R1, P1), (R2, P2)))]
-        K = P1[:3, :3]
-        baseline = float(-P2[0, 3] / P2[0, 0])
-        cam0_T_rect = np.eye(4)
-        cam0_T_rect[:3, :3] = R1.T  # X_rect = R1 X_cam0
-        poses = world_T_cam0 @ cam0_T_rect
+        maps, K, baseline = rectify_maps(calib)
+        poses = _rectified_poses(index.world_T_cam0, calib)
     else:
-        K = Ks[0]
-        baseline = float(np.linalg.norm(c1_T_c0[:3, 3]))
-        poses = world_T_cam0
-    for ts in stamps:  # loop over frames (file reads)
-        pair = []
-        for i in range(2):
-            img = read_grey(frames[i][ts]).numpy()[0, 0]
-            if rectify:
-                img = cv2.remap(img, maps[i][0], maps[i][1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            pair.append(torch.from_numpy(np.clip(img, 0.0, 1.0)))
-        lefts.append(pair[0])
-        rights.append(pair[1])
+        maps, K, baseline = None, calib.K1, float(np.linalg.norm(calib.T))
+        poses = index.world_T_cam0
+    lefts, rights = [], []
+    for files, out, i in ((index.left, lefts, 0), (index.right, rights, 1)):
+        for f in files:  # loop over frames (file reads)
+            img = read_grey(f).numpy()[0, 0]
+            out.append(torch.from_numpy(img if maps is None else _remap(img, maps[i])))
     return EurocSequence(
         left=torch.stack(lefts)[:, None].to(device=device, dtype=dtype),
         right=torch.stack(rights)[:, None].to(device=device, dtype=dtype),
         K=torch.as_tensor(K, dtype=dtype, device=device),
         baseline=baseline,
-        poses=torch.as_tensor(poses, dtype=dtype, device=device),
-        timestamps=torch.tensor(stamps, dtype=torch.int64, device=device),
+        poses=None if poses is None else torch.as_tensor(poses, dtype=dtype, device=device),
+        timestamps=torch.tensor(index.stamps, dtype=torch.int64, device=device),
     )

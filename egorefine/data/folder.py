@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core import ShapeError, ValueRangeError
+from ..core import DataError, MissingDataError, ShapeError, ValueRangeError
 
 __all__ = ["ImageFolderSequence", "read_grey"]
 
@@ -20,11 +20,14 @@ def read_grey(path: str | os.PathLike, device: torch.device | str | None = None,
     """Read an image file as a grey tensor ``(1, 1, H, W)`` in [0, 1] (8- or 16-bit, grey or colour).
 
     Raises:
-        FileNotFoundError: no readable image at ``path``.
+        MissingDataError: no file at ``path`` (a ``FileNotFoundError`` too).
+        DataError: the file is not an image OpenCV can decode.
     """
+    if not Path(path).is_file():
+        raise MissingDataError(f"path: no image file at {os.fspath(path)!r}")
     raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
-        raise FileNotFoundError(f"path: cannot read an image at {os.fspath(path)!r}")
+        raise DataError(f"path: {os.fspath(path)!r} is not an image file OpenCV can decode")
     if raw.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         raw = cv2.cvtColor(raw, code)
