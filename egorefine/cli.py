@@ -236,8 +236,8 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 # -- run ----------------------------------------------------------------------------------------------------------
-def _prepare_output(out: Path, overwrite: bool) -> None:
-    """Refuse an output folder that holds results (unless ``overwrite``: then clear what an earlier run wrote)."""
+def _check_output(out: Path, overwrite: bool) -> None:
+    """Refuse an output folder that holds results of a run, finished or not (unless ``overwrite``)."""
     if out.exists() and not out.is_dir():
         raise ValueRangeError(f"--out: {str(out)!r} exists and is not a folder")
     found = [name for name in (_RUN_JSON, *_TRAJECTORY_FILES) if (out / name).exists()]
@@ -245,7 +245,10 @@ def _prepare_output(out: Path, overwrite: bool) -> None:
     if found and not overwrite:
         raise ValueRangeError(f"--out: {str(out)!r} already holds results ({', '.join(found)}); "
                               "pass --overwrite to replace them or choose another folder")
-    # run.json first: from here on the folder no longer looks like a finished run.
+
+
+def _clear_output(out: Path) -> None:
+    """Delete what an earlier run wrote to ``out``; run.json first, so the folder stops looking finished."""
     for name in (_RUN_JSON, *_TRAJECTORY_FILES):
         (out / name).unlink(missing_ok=True)
     for name in _FRAME_DIRS:
@@ -296,7 +299,7 @@ def _run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     device = _device(args.device)
     out = Path(args.out)
-    _prepare_output(out, args.overwrite)
+    _check_output(out, args.overwrite)  # before reading: a refusal costs nothing
     t_start = time.perf_counter()
     rec = open_recording(args.input, args.layout, calib=args.calib, frames=args.frames, camera=args.camera)
     T = len(rec)
@@ -312,6 +315,7 @@ def _run(args: argparse.Namespace) -> int:
     K = rec.K.to(device=device, dtype=torch.float32)[None]
     baseline = torch.tensor([float(rec.baseline)], device=device)
     t_open = time.perf_counter() - t_start
+    _clear_output(out)  # only once the input is known to be good: bad input leaves an earlier run as it was
     for name in _FRAME_DIRS:
         (out / name).mkdir(parents=True, exist_ok=True)
 

@@ -177,6 +177,52 @@ def test_run_refuses_an_output_folder_with_results(layout, run_out, tmp_path, ca
     assert json.loads((copy / "run.json").read_text())["settings"]["format"] == "npy"
 
 
+def test_run_bad_input_with_overwrite_keeps_the_earlier_run(layout, run_out, tmp_path):
+    root, _ = layout
+    copy = tmp_path / "copy"
+    shutil.copytree(run_out, copy)
+    assert _code(_run_argv(tmp_path / "nowhere", copy, "--overwrite")) == 2
+    assert (copy / "run.json").read_bytes() == (run_out / "run.json").read_bytes()
+
+
+def _kitti_row(M: torch.Tensor) -> str:
+    return " ".join(f"{v:.12e}" for v in M.double().reshape(-1).tolist())
+
+
+def test_run_kitti_odometry_layout_with_poses(layout, tmp_path):
+    """A KITTI odometry sequence (calib.txt, image_0/1, times.txt, poses/XX.txt) written here: every output."""
+    root, seq = layout
+    sequence = tmp_path / "dataset" / "sequences" / "07"
+    for src, dst in (("left", "image_0"), ("right", "image_1")):
+        shutil.copytree(root / src, sequence / dst)
+    P0 = torch.cat([seq.K.double(), torch.zeros(3, 1, dtype=torch.float64)], dim=1)
+    P1 = P0.clone()
+    P1[0, 3] = -float(seq.K[0, 0]) * seq.baseline
+    (sequence / "calib.txt").write_text("".join(f"P{i}: {_kitti_row(P)}\n" for i, P in enumerate((P0, P1, P0, P1))))
+    stamps = 0.1 * np.arange(T)
+    (sequence / "times.txt").write_text("".join(f"{s:.6e}\n" for s in stamps))
+    (tmp_path / "dataset" / "poses").mkdir()
+    (tmp_path / "dataset" / "poses" / "07.txt").write_text("".join(_kitti_row(P[:3]) + "\n" for P in seq.poses))
+    out = tmp_path / "out"
+    assert main(["run", str(sequence), "--layout", "kitti-odometry", "--out", str(out), "--max-disparity", "8",
+                 "--verify-every", "2", "--threads", "1", "--quiet", "--format", "pfm"]) == 0
+    for folder in ("disparity", "valid", "confidence", "preview"):
+        assert len(list((out / folder).iterdir())) == T, folder
+    report = json.loads((out / "run.json").read_text())
+    assert report["frames"]["has_groundtruth_poses"] and report["calibration"]["rectified_input"]
+    gt_stamps, gt = read_trajectory(out / "groundtruth_tum.txt")
+    np.testing.assert_allclose(gt_stamps, stamps, atol=1e-9)
+    torch.testing.assert_close(read_trajectory(out / "groundtruth_kitti.txt")[1], seq.poses.double(), atol=1e-9,
+                               rtol=0)
+    # The rendered poses are float32, orthonormal to ~1e-7; a TUM quaternion is exactly a rotation.
+    torch.testing.assert_close(gt, seq.poses.double(), atol=1e-6, rtol=0)
+    assert main(["eval", str(out), str(root / "gt"), "--traj", str(out / "trajectory_kitti.txt"),
+                 "--gt-traj", str(out / "groundtruth_kitti.txt"), "--json", str(tmp_path / "e.json")]) == 0
+    scores = json.loads((tmp_path / "e.json").read_text())
+    assert scores["disparity"]["frames"] == T and scores["disparity"]["metrics"]["epe"] < 0.3
+    assert scores["trajectory"]["ate_rmse_m"] < 0.1 * scores["trajectory"]["path_length_m"]
+
+
 def test_run_euroc_clip(euroc_root, tmp_path):
     out = tmp_path / "euroc"
     assert main(["run", str(euroc_root), "--layout", "euroc", "--frames", "0:6", "--max-disparity", "24",
