@@ -285,9 +285,53 @@ def _write_trajectories(out: Path, prefix: str, poses: torch.Tensor, stamps: np.
     for fmt in ("tum", "kitti"):
         name = f"{prefix}_{fmt}.txt"
         with atomic_path(out / name) as tmp:
-            write_tum(tmp, poses, stamps) if fmt == "tum" else write_kitti_poses(tmp, poses)
+            if fmt == "tum":
+                write_tum(tmp, poses, stamps)
+            else:
+                write_kitti_poses(tmp, poses)
         names.append(name)
     return names
+
+
+def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dict, files: list[str],
+                timings: dict) -> dict:
+    """What run.json holds: version, settings, calibration, frame counts, the meaning of each output, timings."""
+    H, W = rec.image_size
+    suffix = _format_suffix(args.format)
+    settings = {k: v for k, v in vars(args).items() if k not in ("func", "argv")}
+    if args.frames is not None:
+        start, stop, step = (("" if v is None else str(v)) for v in (args.frames.start, args.frames.stop,
+                                                                     args.frames.step))
+        settings["frames"] = f"{start}:{stop}" + (f":{step}" if step else "")
+    return {
+        "egorefine_version": __version__,
+        "torch_version": torch.__version__,
+        "command": ["egorefine", *(args.argv or [])],
+        "settings": settings,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "calibration": {
+            "K": rec.K.double().cpu().tolist(),
+            "baseline_m": float(rec.baseline),
+            "image_size_hw": [int(H), int(W)],
+            "rectified_input": bool(rec.rectified_input),
+        },
+        "frames": frames,
+        "outputs": {
+            "disparity": f"disparity/<frame>{suffix}: "
+                         + {"png16": "uint16 PNG, disparity = value / 256 px, 0 = invalid",
+                            "pfm": "float32 PFM, px, +inf = invalid",
+                            "npy": "float32 npy, px, NaN = invalid"}[args.format],
+            "valid": "valid/<frame>.png: uint8, 255 = valid",
+            "confidence": f"confidence/<frame>{suffix}: 1 / (1 + variance px^2) in [0, 1]"
+                          + (", stored as value / 65535" if args.format == "png16" else ""),
+            "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid",
+            "trajectory": files,
+            "trajectory_frame": "world_T_camera of the rectified left camera; starts at the recording's first "
+                                "true pose where it has one, else at the identity",
+        },
+        "timings": timings,
+    }
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -349,49 +393,18 @@ def _run(args: argparse.Namespace) -> int:
     files = _write_trajectories(out, "trajectory", poses, rec.timestamps)
     if rec.poses is not None:
         files += _write_trajectories(out, "groundtruth", rec.poses.double().cpu(), rec.timestamps)
-    settings = {k: v for k, v in vars(args).items() if k not in ("func", "argv")}
-    if args.frames is not None:
-        start, stop, step = (("" if v is None else str(v)) for v in (args.frames.start, args.frames.stop,
-                                                                     args.frames.step))
-        settings["frames"] = f"{start}:{stop}" + (f":{step}" if step else "")
-    report = {
-        "egorefine_version": __version__,
-        "torch_version": torch.__version__,
-        "command": ["egorefine", *(args.argv or [])],
-        "settings": settings,
-        "device": str(device),
-        "threads": torch.get_num_threads(),
-        "calibration": {
-            "K": rec.K.double().cpu().tolist(),
-            "baseline_m": float(rec.baseline),
-            "image_size_hw": [int(H), int(W)],
-            "rectified_input": bool(rec.rectified_input),
-        },
-        "frames": {"count": T, "first": rec.names[0], "last": rec.names[-1], "stereo_ran": stereo_frames,
-                   "motion_failed": motion_failed, "has_groundtruth_poses": rec.poses is not None},
-        "outputs": {
-            "disparity": f"disparity/<frame>{_format_suffix(args.format)}: "
-                         + {"png16": "uint16 PNG, disparity = value / 256 px, 0 = invalid",
-                            "pfm": "float32 PFM, px, +inf = invalid",
-                            "npy": "float32 npy, px, NaN = invalid"}[args.format],
-            "valid": "valid/<frame>.png: uint8, 255 = valid",
-            "confidence": f"confidence/<frame>{_format_suffix(args.format)}: 1 / (1 + variance px^2) in [0, 1]"
-                          + (", stored as value / 65535" if args.format == "png16" else ""),
-            "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid",
-            "trajectory": files,
-            "trajectory_frame": "world_T_camera of the rectified left camera; starts at the recording's first "
-                                "true pose where it has one, else at the identity",
-        },
-        "timings": {
-            "open_s": t_open,
-            "total_s": time.perf_counter() - t_start,
-            "refine_ms_first_frame": refine_ms[0],
-            "refine_ms_median": float(np.median(refine_ms)),
-            "refine_ms_mean_after_first": float(np.mean(refine_ms[1:])),
-            "write_ms_mean": float(np.mean(write_ms)),
-            "note": "the first frame includes numba's compilation of the kernels",
-        },
+    timings = {
+        "open_s": t_open,
+        "total_s": time.perf_counter() - t_start,
+        "refine_ms_first_frame": refine_ms[0],
+        "refine_ms_median": float(np.median(refine_ms)),
+        "refine_ms_mean_after_first": float(np.mean(refine_ms[1:])),
+        "write_ms_mean": float(np.mean(write_ms)),
+        "note": "the first frame includes numba's compilation of the kernels",
     }
+    frames = {"count": T, "first": rec.names[0], "last": rec.names[-1], "stereo_ran": stereo_frames,
+              "motion_failed": motion_failed, "has_groundtruth_poses": rec.poses is not None}
+    report = _run_report(args, rec, device, frames, files, timings)
     _write_json(out / _RUN_JSON, report)
     if not args.quiet:
         print(f"egorefine run: {T} frames ({W}x{H}) -> {out}/ (stereo on {stereo_frames}, "

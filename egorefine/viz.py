@@ -57,14 +57,15 @@ def _masked(m: torch.Tensor) -> np.ma.MaskedArray:
     return np.ma.masked_invalid(a)
 
 
-def _show(ax, m: torch.Tensor, cmap: str, vmin: float, vmax: float, title: str, colorbar: str | None):
+def _show(ax, m: torch.Tensor, cmap: str, vmin: float, vmax: float, title: str, colorbar: str | None,
+          extend: str = "neither"):
     colours = _colormap(cmap)
     im = ax.imshow(_masked(m), cmap=colours, vmin=vmin, vmax=vmax, interpolation="nearest")
     ax.set_title(title, fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
     if colorbar is not None:
-        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=colorbar)
+        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=colorbar, extend=extend)
     return im
 
 
@@ -104,7 +105,8 @@ def save_maps_figure(
             ``"refined"``).
         truth: ``(H, W)`` true disparity, NaN where unknown; adds a "truth" panel and an error row.
         max_disparity: top of the disparity colour scale, px (default: the largest finite value shown).
-        max_error: top of the error colour scale, px (default 1 px: the errors that matter here are sub-pixel).
+        max_error: top of the error colour scale, px (default 1 px: the errors that matter here are sub-pixel);
+            larger errors take its top colour (the colour bar's arrow).
         title: figure title.
 
     Returns:
@@ -123,7 +125,7 @@ def save_maps_figure(
         axes[1, 0].axis("off")
         axes[1, 1].axis("off")
         for ax, (name, m) in zip(axes[1, 2:], maps.items(), strict=True):
-            _show(ax, (m - truth).abs(), "magma", 0.0, max_error, f"|{name} - truth|", "error (px)")
+            _show(ax, (m - truth).abs(), "magma", 0.0, max_error, f"|{name} - truth|", "error (px)", extend="max")
     if title:
         fig.suptitle(title, fontsize=10)
     return _save(fig, path)
