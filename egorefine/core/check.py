@@ -29,11 +29,22 @@ __all__ = [
     "check_shape",
     "check_float",
     "check_same_device",
+    "check_same_dtype",
     "check_finite",
     "check_positive",
     "check_image",
     "check_choice",
+    "check_intrinsics",
+    "check_variance",
+    "IMAGE_RANGE_TOLERANCE",
 ]
+
+# Images are floats in [0, 1]; a little beyond is allowed for noise or augmentation added by the caller, while an
+# image left in 0..255 (the likeliest mistake) is far beyond it.
+IMAGE_RANGE_TOLERANCE = 0.1
+
+# Half-precision types the stages do not compute in (their sums and sub-pixel fits need float32's mantissa).
+_HALF_TYPES = (torch.float16, torch.bfloat16)
 
 
 def _fmt(shape: Sequence[int]) -> str:
@@ -82,11 +93,17 @@ def check_shape(
 
 
 def check_float(x: torch.Tensor, name: str) -> None:
-    """Raise :class:`DTypeError` unless ``x`` is a floating-point tensor."""
+    """Raise :class:`DTypeError` unless ``x`` is a float32 or float64 tensor.
+
+    float16 and bfloat16 are refused with a hint: the stages' sums, solves and sub-pixel fits need float32's
+    mantissa, and several CPU kernels have no half-precision version.
+    """
     if not isinstance(x, torch.Tensor):
         raise DTypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
     if not x.is_floating_point():
         raise DTypeError(f"{name}: expected a floating-point tensor, got {x.dtype}")
+    if x.dtype in _HALF_TYPES:
+        raise DTypeError(f"{name}: expected float32 or float64, got {x.dtype}; convert with .float()")
 
 
 def check_same_device(reference: torch.Tensor, ref_name: str, **others: torch.Tensor | None) -> None:
@@ -96,27 +113,47 @@ def check_same_device(reference: torch.Tensor, ref_name: str, **others: torch.Te
             raise DeviceError(f"{other_name}: on {t.device}, but {ref_name} is on {reference.device}")
 
 
+def _extremes(x: torch.Tensor) -> tuple[float, float] | None:
+    """The minimum and maximum of a float tensor (NaN if it holds one), with one synchronisation; None if empty.
+
+    On the CPU, float32/float64 tensors take numpy's single-threaded minimum and maximum: a torch reduction over
+    a full map wakes torch's OpenMP threads, which then spin beside whatever compiled kernel runs next.
+    """
+    if x.numel() == 0:
+        return None
+    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
+        values = x.detach().numpy()
+        return float(values.min()), float(values.max())  # numpy's min and max propagate NaN
+    low, high = torch.aminmax(x.detach())
+    return float(low), float(high)
+
+
+def check_same_dtype(reference: torch.Tensor, ref_name: str, **others: torch.Tensor | None) -> None:
+    """Raise :class:`DTypeError` if any tensor in ``others`` has another dtype than ``reference``.
+
+    >>> check_same_dtype(torch.zeros(2), "prev", next=torch.zeros(2, dtype=torch.float64))
+    Traceback (most recent call last):
+    ...
+    egorefine.core.errors.DTypeError: next: torch.float64, but prev is torch.float32; pass both in one dtype
+    """
+    for other_name, t in others.items():
+        if t is not None and t.dtype != reference.dtype:
+            raise DTypeError(f"{other_name}: {t.dtype}, but {ref_name} is {reference.dtype}; pass both in one dtype")
+
+
 def check_finite(x: torch.Tensor, name: str) -> None:
     """Raise :class:`ValueRangeError` if ``x`` holds NaN or Inf.
 
     This synchronises with the device once; it guards public entry points, not inner loops. The test is
-    the extremes' finiteness (``aminmax`` propagates NaN; an Inf is an extreme): one reduction without a
-    mask tensor, ten times cheaper on CPU than ``isfinite(x).all()`` (0.1 against 1.1 ms on a 640x480
-    colour image, two threads). On the CPU, float32/float64 tensors take numpy's single-threaded minimum
-    and maximum instead: a torch reduction over a full map wakes torch's OpenMP threads, which then spin
-    for a few ms beside whatever compiled kernel runs next.
+    the extremes' finiteness (the minimum and maximum propagate NaN; an Inf is an extreme): one reduction
+    without a mask tensor, much cheaper than ``isfinite(x).all()``.
     """
-    if not (x.is_floating_point() or x.is_complex()) or x.numel() == 0:
+    if not (x.is_floating_point() or x.is_complex()):
         return  # integers and booleans are always finite
     if x.is_complex():
         x = torch.view_as_real(x)
-    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
-        values = x.detach().numpy()
-        if not (np.isfinite(values.min()) and np.isfinite(values.max())):  # numpy's min and max propagate NaN
-            raise ValueRangeError(f"{name}: contains NaN or Inf")
-        return
-    low, high = torch.aminmax(x.detach())
-    if not bool(torch.isfinite(low) & torch.isfinite(high)):
+    extremes = _extremes(x)
+    if extremes is not None and not all(np.isfinite(extremes)):
         raise ValueRangeError(f"{name}: contains NaN or Inf")
 
 
@@ -126,12 +163,82 @@ def check_positive(x: torch.Tensor, name: str) -> None:
         raise ValueRangeError(f"{name}: every entry must be finite and > 0, got {x.detach().flatten()[:8].tolist()}")
 
 
-def check_image(x: torch.Tensor, name: str, bound: dict[str, int] | None = None) -> dict[str, int]:
-    """Check a float image batch ``(B, C, H, W)`` with C in {1, 3} and no NaN/Inf."""
+def check_image(
+    x: torch.Tensor, name: str, bound: dict[str, int] | None = None, min_size: int = 1
+) -> dict[str, int]:
+    """Check a float image batch ``(B, C, H, W)``: C in {1, 3}, B >= 1, values in [0, 1] and no NaN/Inf.
+
+    ``min_size`` is the smallest height and width the caller's filters work on (default 1).
+
+    Values may stray beyond [0, 1] by :data:`IMAGE_RANGE_TOLERANCE` (noise or augmentation); an image in 0..255
+    is refused with a message saying how to scale it.
+
+    Raises:
+        ShapeError: wrong rank, channels, an empty batch or a side below ``min_size``.
+        DTypeError: not a float32/float64 tensor (see :func:`check_float`).
+        ValueRangeError: NaN/Inf, or values outside [0, 1] beyond the tolerance.
+
+    >>> check_image(torch.rand(2, 1, 4, 5), "left")
+    {'B': 2, 'H': 4, 'W': 5}
+    >>> check_image(torch.full((1, 1, 4, 5), 200.0), "left")
+    Traceback (most recent call last):
+    ...
+    egorefine.core.errors.ValueRangeError: left: expected values in [0, 1], got [200, 200]; scale 8-bit images by 1/255
+    """
     dims = check_shape(x, ["B", "1|3", "H", "W"], name, bound)
     check_float(x, name)
-    check_finite(x, name)
+    if x.shape[0] == 0:
+        raise ShapeError(f"{name}: expected a batch of at least one image, got shape {_fmt(x.shape)}")
+    if min(x.shape[-2:]) < min_size:
+        raise ShapeError(f"{name}: expected at least {min_size} px per side, got shape {_fmt(x.shape)}")
+    extremes = _extremes(x)
+    if extremes is None:
+        raise ShapeError(f"{name}: expected a non-empty image, got shape {_fmt(x.shape)}")
+    low, high = extremes
+    if not (np.isfinite(low) and np.isfinite(high)):
+        raise ValueRangeError(f"{name}: contains NaN or Inf")
+    if low < -IMAGE_RANGE_TOLERANCE or high > 1.0 + IMAGE_RANGE_TOLERANCE:
+        hint = "; scale 8-bit images by 1/255" if high > 2.0 else ""
+        raise ValueRangeError(f"{name}: expected values in [0, 1], got [{low:.3g}, {high:.3g}]{hint}")
     return dims
+
+
+def check_intrinsics(K: torch.Tensor, name: str = "K", bound: dict[str, int] | None = None) -> dict[str, int]:
+    """Check pinhole intrinsics ``(B, 3, 3)``: float, finite, fx and fy > 0, last row ``(0, 0, 1)``.
+
+    A K with a positive focal length and that last row is invertible, so a singular K is caught here too.
+
+    Raises:
+        ShapeError, DTypeError, ValueRangeError: as the other checks.
+
+    >>> check_intrinsics(torch.tensor([[[400.0, 0, 320], [0, 400, 240], [0, 0, 1]]]))
+    {'B': 1}
+    >>> check_intrinsics(torch.zeros(1, 3, 3))
+    Traceback (most recent call last):
+    ...
+    egorefine.core.errors.ValueRangeError: K: expected fx, fy > 0 and the last row (0, 0, 1), got fx=[0.0], fy=[0.0]
+    """
+    dims = check_shape(K, ["B", "3", "3"], name, bound)
+    check_float(K, name)
+    check_finite(K, name)
+    Kd = K.detach()
+    fx, fy = Kd[:, 0, 0], Kd[:, 1, 1]
+    last = Kd[:, 2] - torch.tensor([0.0, 0.0, 1.0], device=K.device, dtype=K.dtype)
+    if not bool((fx > 0).all() & (fy > 0).all() & (last.abs() <= 1e-6).all()):
+        raise ValueRangeError(f"{name}: expected fx, fy > 0 and the last row (0, 0, 1), "
+                              f"got fx={fx[:4].tolist()}, fy={fy[:4].tolist()}")
+    return dims
+
+
+def check_variance(x: torch.Tensor, name: str) -> None:
+    """Raise :class:`ValueRangeError` unless every entry of ``x`` is finite and >= 0 (a variance map)."""
+    check_float(x, name)
+    extremes = _extremes(x)
+    if extremes is None:
+        return
+    low, high = extremes
+    if not (np.isfinite(low) and np.isfinite(high)) or low < 0:
+        raise ValueRangeError(f"{name}: expected finite values >= 0, got [{low:.3g}, {high:.3g}]")
 
 
 def check_choice(value: str, options: Sequence[str], name: str) -> None:

@@ -7,10 +7,13 @@
   vector), ``T``, optionally ``R1``, ``R2``, ``P1``, ``P2`` and the image size (``image_size``, ``imageSize`` or
   ``size`` as ``[width, height]``, or ``image_width`` and ``image_height``). OpenCV's stereo sample writes two
   files, ``intrinsics.yml`` and ``extrinsics.yml``: naming either one (or their folder) reads both. Plain JSON
-  with nested lists is read too.
+  with nested lists is read too. ``P1``/``P2`` with no distortion (and ``R1``/``R2`` absent or the identity)
+  mean rectified images; otherwise the images are raw and the rectification is computed afresh from ``K``,
+  ``D``, ``R``, ``T`` (a file's own ``R1``, ``R2``, ``P1``, ``P2`` are then not used).
 - **ROS** ``camera_info`` YAML, one file per camera: name the left camera's file (the right one is found beside
   it, ``left`` replaced by ``right`` or a trailing ``0`` by ``1`` in its name) or their folder. The right
-  camera's projection carries ``-fx * B`` in ``P[0, 3]``.
+  camera's projection carries ``-fx * B`` in ``P[0, 3]``. As in ROS, the files describe the raw images
+  (``image_raw``); a pair with no distortion and identity rectification matrices is taken as rectified.
 - **KITTI**: the raw recordings' ``calib_cam_to_cam.txt`` (``K_xx``, ``D_xx``, ``R_xx``, ``T_xx``, ``S_rect_xx``,
   ``R_rect_xx``, ``P_rect_xx``) and the odometry/object benchmarks' ``calib.txt`` (``P0`` .. ``P3``); ``camera``
   picks the grey pair (cameras 0, 1) or the colour pair (2, 3). Both describe rectified images.

@@ -7,23 +7,25 @@ rectified left camera's ``K``, the baseline and (where the layout has them) ``wo
 Layouts (:data:`LAYOUTS`):
 
 ``folders``
-    ``path/left/`` and ``path/right/`` image folders (or ``cam0/cam1``, ``image_0/image_1``, ``image_2/image_3``:
-    the first pair present, in that order), frames paired by sorted file name, and a calibration file
-    (``calib``, or found in ``path``: see :func:`egorefine.data.read_calibration` for the formats). No time
-    stamps, no poses.
+    ``path/left/`` and ``path/right/`` image folders (or ``cam0/cam1``, or KITTI's ``image_0/image_1`` with
+    ``camera="grey"`` and ``image_2/image_3`` with ``camera="colour"``: the first pair present, in that order),
+    frames paired by sorted file name, and a calibration file (``calib``, or found in ``path``: see
+    :func:`egorefine.data.read_calibration` for the formats; ``camera`` also picks a KITTI file's pair). Time
+    stamps from ``path/times.txt`` (seconds, one line per frame) where present; no poses.
 ``kitti-raw``
     A synced and rectified drive, ``.../2011_09_26/2011_09_26_drive_0001_sync/``: ``image_00``/``image_01``
-    (grey) or ``image_02``/``image_03`` (colour) with ``data/*.png`` and ``timestamps.txt``;
+    (grey) or ``image_02``/``image_03`` (colour) with ``data/*.png`` and ``timestamps.txt`` (the left camera's,
+    else image_02's or image_00's: the synced cameras share a trigger);
     ``calib_cam_to_cam.txt`` in the drive folder or its parent (the date folder); poses from ``oxts/data/*.txt``
-    where present, with ``calib_imu_to_velo.txt`` and ``calib_velo_to_cam.txt`` beside the camera calibration
-    (poses None without them). The world frame is the first OXTS pose's, as in the KITTI devkit.
+    where present, with ``calib_imu_to_velo.txt`` and ``calib_velo_to_cam.txt`` (drive or date folder; poses
+    None without them). The world frame is the first OXTS pose's, as in the KITTI devkit.
 ``kitti-odometry``
     A sequence folder ``.../sequences/XX/``: ``calib.txt`` (``P0`` .. ``P3``), ``image_0``/``image_1`` (grey) or
     ``image_2``/``image_3`` (colour), ``times.txt``, and ``../../poses/XX.txt`` where present (camera 0's poses,
     moved to the loaded left camera).
 ``euroc``
-    EuRoC MAV's ASL layout (``mav0/cam0``, ``mav0/cam1``, ground truth optional): see
-    :func:`egorefine.data.load_euroc`. Grey cameras only.
+    EuRoC MAV's ASL layout (``mav0/cam0``, ``mav0/cam1``, ground truth optional; ``path`` is the folder holding
+    ``mav0`` or ``mav0`` itself): see :func:`egorefine.data.load_euroc`. Grey cameras only.
 
 Every unrectified layout goes through :func:`egorefine.data.rectify_maps`.
 """
@@ -38,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core import DataError, MissingDataError, ValueRangeError, check_choice
+from ..core import DataError, MissingDataError, ShapeError, ValueRangeError, check_choice
 from .calib import _KITTI_PAIRS, CAMERAS, _read_kitti_txt, _remap, read_calibration, rectify_maps
 from .euroc import _index_euroc, _rectified_poses
 from .folder import read_grey
@@ -48,14 +50,25 @@ __all__ = ["LAYOUTS", "StereoRecording", "open_recording", "oxts_to_poses"]
 #: The folder layouts :func:`open_recording` reads.
 LAYOUTS = ("folders", "kitti-raw", "kitti-odometry", "euroc")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
-_FOLDER_PAIRS = (("left", "right"), ("cam0", "cam1"), ("image_0", "image_1"), ("image_2", "image_3"))
+_FOLDER_PAIRS = {"grey": (("left", "right"), ("cam0", "cam1"), ("image_0", "image_1")),
+                 "colour": (("left", "right"), ("cam0", "cam1"), ("image_2", "image_3"))}
 _EARTH_RADIUS_M = 6378137.0  # WGS84 equatorial radius, the KITTI devkit's Mercator projection
 
 
 class StereoRecording:
     """A stereo recording read lazily: each ``(left, right)`` pair is read and rectified when indexed.
 
-    Build one with :func:`open_recording`.
+    Build one with :func:`open_recording`, which reads a layout's files into these arguments.
+
+    Args:
+        left_files, right_files: one image file per frame and camera.
+        K: ``(3, 3)`` intrinsics of the rectified left camera, pixels.
+        baseline: metres, > 0.
+        image_size: ``(H, W)`` of the images (raw and rectified alike: rectification keeps the size).
+        names: one stem per frame.
+        timestamps: ``(T,)`` seconds, or None.
+        poses: ``(T, 4, 4)`` ``world_T_camera`` of the rectified left camera, or None.
+        maps: :func:`egorefine.data.rectify_maps`'s tables for both cameras, or None for rectified input.
 
     Attributes:
         K: ``(3, 3)`` float64 intrinsics of the rectified left camera, pixels.
@@ -87,6 +100,14 @@ class StereoRecording:
         self.poses = poses
         self.rectified_input = maps is None
         self._maps = maps
+        T = len(self.left_files)
+        for name, n in (("right_files", len(self.right_files)), ("names", len(self.names)),
+                        ("timestamps", None if timestamps is None else len(timestamps)),
+                        ("poses", None if poses is None else len(poses))):
+            if n is not None and n != T:
+                raise ShapeError(f"{name}: expected one entry per frame ({T}), got {n}")
+        if not self.baseline > 0:
+            raise ValueRangeError(f"baseline: expected > 0 metres, got {self.baseline}")
 
     def __len__(self) -> int:
         return len(self.left_files)
@@ -165,6 +186,15 @@ def _check_count(what: str, source: Path, n: int, frames: int) -> None:
         raise DataError(f"path: {source} has {n} {what}, expected one per frame ({frames})")
 
 
+def _times(path: Path, frames: int) -> np.ndarray | None:
+    """Seconds from a ``times.txt`` (one number per line, one line per frame); None without the file."""
+    if not path.is_file():
+        return None
+    times = _numbers(path)[:, 0]
+    _check_count("time stamps", path, len(times), frames)
+    return times
+
+
 def _rect_offset(P: np.ndarray) -> np.ndarray:
     """``t`` with ``P = K [I | t]``: where a rectified camera sits relative to the rectified reference camera."""
     return np.linalg.solve(P[:, :3], P[:, 3])
@@ -208,7 +238,8 @@ def oxts_to_poses(oxts: np.ndarray) -> np.ndarray:
     Rz = np.stack([cy, -sy, zero, sy, cy, zero, zero, zero, one], -1).reshape(-1, 3, 3)
     poses = np.tile(np.eye(4), (len(oxts), 1, 1))
     poses[:, :3, :3] = Rz @ Ry @ Rx
-    poses[:, :3, 3] = np.stack([x, y, alt], -1)
+    t = np.stack([x, y, alt], -1)
+    poses[:, :3, 3] = t - t[0]  # relative first: Mercator metres are millions, their difference is what counts
     return np.linalg.inv(poses[0]) @ poses
 
 
@@ -234,13 +265,13 @@ def _kitti_timestamps(path: Path) -> np.ndarray:
 
 
 def _open_folders(path: Path, calib: str | os.PathLike | None, camera: str) -> dict:
-    for a, b in _FOLDER_PAIRS:
+    for a, b in _FOLDER_PAIRS[camera]:
         if (path / a).is_dir() or (path / b).is_dir():
             left, right = _image_pair(path / a, path / b)
             break
     else:
         raise MissingDataError(f"path: {path} holds none of the folder pairs "
-                               f"{', '.join(f'{a}/ + {b}/' for a, b in _FOLDER_PAIRS)}")
+                               f"{', '.join(f'{a}/ + {b}/' for a, b in _FOLDER_PAIRS[camera])} (camera={camera!r})")
     cal = read_calibration(path if calib is None else calib, camera)
     size = _size_of(left[0])
     if cal.image_size is None:
@@ -250,12 +281,14 @@ def _open_folders(path: Path, calib: str | os.PathLike | None, camera: str) -> d
                         f"{left[0]} is {size[1]}x{size[0]} (W x H)")
     maps, K, baseline = rectify_maps(cal)
     return dict(left_files=left, right_files=right, K=K, baseline=baseline, image_size=size, maps=maps,
-                names=[f.stem for f in left])
+                names=[f.stem for f in left], timestamps=_times(path / "times.txt", len(left)))
 
 
 def _open_euroc(path: Path, calib: str | os.PathLike | None, camera: str) -> dict:
     if camera != "grey":
         raise ValueRangeError(f"camera: EuRoC has grey cameras only, got {camera!r}")
+    if not (path / "mav0").is_dir() and path.name == "mav0":
+        path = path.parent  # the mav0 folder itself was named
     index = _index_euroc(path)
     maps, K, baseline = rectify_maps(index.calib)
     poses = _rectified_poses(index.world_T_cam0, index.calib)
@@ -286,8 +319,10 @@ def _open_kitti_raw(path: Path, calib: str | os.PathLike | None, camera: str) ->
     size = cal.image_size or _size_of(left[0])
     out = dict(left_files=left, right_files=right, K=K, baseline=baseline, image_size=size, maps=maps,
                names=[f.stem for f in left])
-    stamps = path / f"image_{a:02d}" / "timestamps.txt"
-    if stamps.is_file():
+    # The synced cameras are triggered together: another camera's stamps stand in where the left's are missing.
+    stamps = [path / f"image_{c:02d}" / "timestamps.txt" for c in (a, 2, 0)]
+    stamps = next((f for f in stamps if f.is_file()), None)
+    if stamps is not None:
         out["timestamps"] = _kitti_timestamps(stamps)
         _check_count("time stamps", stamps, len(out["timestamps"]), len(left))
     imu_file, velo_file = _beside(path, "calib_imu_to_velo.txt"), _beside(path, "calib_velo_to_cam.txt")
@@ -317,9 +352,7 @@ def _open_kitti_odometry(path: Path, calib: str | os.PathLike | None, camera: st
     maps, K, baseline = rectify_maps(cal)
     out = dict(left_files=left, right_files=right, K=K, baseline=baseline, image_size=_size_of(left[0]),
                maps=maps, names=[f.stem for f in left])
-    if (path / "times.txt").is_file():
-        out["timestamps"] = _numbers(path / "times.txt")[:, 0]
-        _check_count("time stamps", path / "times.txt", len(out["timestamps"]), len(left))
+    out["timestamps"] = _times(path / "times.txt", len(left))
     pose_file = path.parent.parent / "poses" / f"{path.name}.txt"
     if pose_file.is_file():
         world_T_cam0 = _pose_matrix(_numbers(pose_file), pose_file)
@@ -346,8 +379,9 @@ def open_recording(path: str | os.PathLike, layout: str, calib: str | os.PathLik
         calib: ``folders`` only: the calibration file (or its folder); default: found in ``path``. The other
             layouts read their own calibration files.
         frames: which frames to keep, e.g. ``slice(100, 200)`` or ``slice(None, None, 2)``; default all.
-        camera: ``"grey"`` or ``"colour"``: which KITTI camera pair to read (colour frames are turned grey);
-            EuRoC accepts grey only. Default grey, KITTI's reference camera 0.
+        camera: ``"grey"`` or ``"colour"``: which KITTI camera pair to read (the kitti layouts, ``folders`` with
+            KITTI folder names or a KITTI calibration file); colour frames are turned grey. EuRoC accepts grey
+            only. Default grey, KITTI's reference camera 0.
 
     Returns:
         :class:`StereoRecording`.

@@ -45,6 +45,8 @@ from . import _detect_numba
 __all__ = ["detect", "Detector", "replenish", "corner_response"]
 
 _RESPONSES = ("gftt", "harris")
+# The corner response's gradient and window filters pad by reflection, which needs more pixels than their radius.
+_MIN_SIDE = 4
 _SUBPIXEL = ("gradient", "quadratic", "none")
 
 
@@ -67,7 +69,7 @@ def corner_response(image: torch.Tensor, response: str = "gftt", k: float = 0.04
     >>> corner_response(torch.rand(2, 3, 16, 20)).shape
     torch.Size([2, 1, 16, 20])
     """
-    check_image(image, "image")
+    check_image(image, "image", min_size=_MIN_SIDE)
     check_choice(response, _RESPONSES, "response")
     gray = to_grey(image)
     if response == "gftt":
@@ -249,7 +251,7 @@ def detect(
     >>> kp.shape, w.shape
     (torch.Size([2, 50, 2]), torch.Size([2, 50]))
     """
-    check_image(image, "image")
+    check_image(image, "image", min_size=_MIN_SIDE)
     check_choice(response, _RESPONSES, "response")
     check_choice(subpixel, _SUBPIXEL, "subpixel")
     _check_settings(max_features, tuple(grid), nms_radius, border)
@@ -429,7 +431,7 @@ def replenish(
     >>> kp.shape, w.shape
     (torch.Size([1, 10, 2]), torch.Size([1, 10]))
     """
-    dims = check_image(image, "image")
+    dims = check_image(image, "image", min_size=_MIN_SIDE)
     check_shape(keypoints, ["B", "N", "2"], "keypoints", dims)
     check_shape(weights, ["B", "N"], "weights", dims)
     check_float(keypoints, "keypoints")

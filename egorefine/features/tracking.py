@@ -66,6 +66,7 @@ from ..core import (
     check_choice,
     check_float,
     check_same_device,
+    check_same_dtype,
     check_shape,
     eps_like,
     to_grey,
@@ -719,6 +720,8 @@ def track(
     if predicted is not None:
         check_float(predicted, "predicted")
     check_same_device(prev, "prev", next=next, keypoints=keypoints, weights=weights, predicted=predicted)
+    check_same_dtype(prev, "prev", next=next)
+    check_same_dtype(keypoints, "keypoints", weights=weights, predicted=predicted)
     _check_track_settings(patch_size, search_radius, refine_radius, levels, cost, fb_threshold, temperature, lk_iters)
     _check_predicted_radius(predicted_radius)
     _check_fb_levels(fb_levels)

@@ -37,7 +37,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from ..core import check_choice, check_float, check_same_device, check_shape
+from ..core import check_choice, check_finite, check_float, check_same_device, check_shape, check_variance
 from ..core.errors import ValueRangeError
 from . import _fuse_numba, _predict_numba
 
@@ -229,6 +229,11 @@ def correct_disparity(
     ):
         if t is not None:
             check_shape(t, ["B", "1", "H", "W"], name, dims)
+    check_finite(predicted, "predicted")
+    check_finite(measured, "measured")
+    for name, t in (("predicted_variance", predicted_variance), ("measured_variance", measured_variance)):
+        if t is not None:
+            check_variance(t, name)
     check_same_device(
         predicted,
         "predicted",

@@ -81,9 +81,11 @@ from ..core import (
     check_choice,
     check_finite,
     check_float,
+    check_intrinsics,
     check_positive,
     check_same_device,
     check_shape,
+    check_variance,
     eps_like,
 )
 from ..core.errors import ValueRangeError
@@ -319,11 +321,11 @@ def predict_disparity(
     check_shape(baseline, ["B"], "baseline", dims)
     check_positive(baseline, "baseline")
     check_finite(motion, "motion")
-    check_positive(K[:, 0, 0], "K focal")
+    check_intrinsics(K, "K", dims)
     check_choice(mode, ["hard", "soft"], "mode")
     if variance is not None:
         check_shape(variance, ["B", "1", "H", "W"], "variance", dims)
-        check_float(variance, "variance")
+        check_variance(variance, "variance")
     if valid is not None:
         check_shape(valid, ["B", "1", "H", "W"], "valid", dims)
         if valid.dtype != torch.bool:

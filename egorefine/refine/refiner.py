@@ -25,11 +25,14 @@ from torch import nn
 
 from ..core import (
     DeviceError,
+    DTypeError,
     ShapeError,
     StateError,
     ValueRangeError,
     check_choice,
+    check_float,
     check_image,
+    check_intrinsics,
     check_positive,
     check_shape,
     progress,
@@ -447,8 +450,9 @@ class EgoMotionRefiner(nn.Module):
             check_image(right, "right", dims)
             if right.device != left.device:
                 raise DeviceError(f"right: on {right.device}, but left is on {left.device}")
-        check_shape(K, ["B", "3", "3"], "K", dims)
+        check_intrinsics(K, "K", dims)
         check_shape(baseline, ["B"], "baseline", dims)
+        check_float(baseline, "baseline")
         check_positive(baseline, "baseline")
         for name, t in (("K", K), ("baseline", baseline)):
             if t.device != left.device:
@@ -467,6 +471,8 @@ class EgoMotionRefiner(nn.Module):
             raise StateError(f"state: carried for batch size {prev.shape[0]}, but left has {left.shape[0]}")
         if prev.device != left.device:
             raise StateError(f"state: on {prev.device}, but left is on {left.device}; frames may not change device")
+        if prev.dtype != left.dtype:
+            raise StateError(f"state: carried in {prev.dtype}, but left is {left.dtype}; frames may not change dtype")
 
     def _needs_stereo(self, frame: int, motion_ok: torch.Tensor, coverage: torch.Tensor | None,
                       conf: torch.Tensor | None) -> bool:
@@ -711,9 +717,14 @@ def refine_sequence(
     Returns:
         :class:`SequenceResult`.
     """
+    for name, t in (("lefts", lefts), ("rights", rights)):
+        if not isinstance(t, torch.Tensor):
+            raise DTypeError(f"{name}: expected a torch.Tensor, got {type(t).__name__} (use torch.as_tensor)")
     if lefts.dim() == 4:
         lefts, rights = lefts[:, None], rights[:, None]
     check_shape(lefts, ["T", "B", "1|3", "H", "W"], "lefts")
+    if lefts.shape[0] == 0:
+        raise ShapeError(f"lefts: expected at least one frame, got shape {tuple(lefts.shape)}")
     if rights.shape != lefts.shape:
         raise ShapeError(f"rights: expected the shape of lefts {tuple(lefts.shape)}, got {tuple(rights.shape)}")
     T, B = lefts.shape[:2]

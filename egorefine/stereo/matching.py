@@ -25,8 +25,7 @@ from ..core import (
     ValueRangeError,
     _graphs,
     check_choice,
-    check_finite,
-    check_float,
+    check_image,
     check_same_device,
     check_shape,
     to_grey,
@@ -78,10 +77,8 @@ def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, m
     dims = check_shape(left, ["B", "1|3", "H", "W"], "left")
     check_shape(right, ["B", "1|3", "H", "W"], "right", dims)
     check_same_device(left, "left", right=right)
-    check_float(left, "left")
-    check_float(right, "right")
-    check_finite(left, "left")
-    check_finite(right, "right")
+    check_image(left, "left", dims)
+    check_image(right, "right", dims)
     width = dims["W"]
     for name, value in (("max_disparity", max_disparity), ("min_disparity", min_disparity),
                         ("block_size", block_size), ("sgm_paths", sgm_paths)):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from egorefine.core import ValueRangeError
-from egorefine.data import ImageFolderSequence
+from egorefine.core import DataError, MissingDataError, ValueRangeError
+from egorefine.data import ImageFolderSequence, read_grey
 
 
 def _write_pairs(root, n: int, colour: bool = False) -> list[np.ndarray]:
@@ -62,3 +62,11 @@ def test_errors(tmp_path) -> None:
         ImageFolderSequence(tmp_path / "L", tmp_path / "R", pattern="*.jpg")
     with pytest.raises(FileNotFoundError, match="left_dir"):
         ImageFolderSequence(tmp_path / "nope", tmp_path / "R")
+
+
+def test_read_grey_errors(tmp_path) -> None:
+    with pytest.raises(MissingDataError, match="no image file at .*gone.png"):
+        read_grey(tmp_path / "gone.png")
+    (tmp_path / "text.png").write_text("not a PNG")
+    with pytest.raises(DataError, match="text.png' is not an image file OpenCV can decode"):
+        read_grey(tmp_path / "text.png")

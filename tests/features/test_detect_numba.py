@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from egorefine.core import ValueRangeError
+from egorefine.core import ShapeError, ValueRangeError
 from egorefine.data import render_sequence
 from egorefine.features import _detect_numba as dn
 from egorefine.features import detect, detection, replenish
@@ -132,12 +132,12 @@ def test_images_smaller_than_the_grid(size, monkeypatch):
     _assert_agree(ref, out)
 
 
-def test_too_small_image_keeps_the_torch_error(monkeypatch):
+def test_too_small_image_is_refused_on_both_paths(monkeypatch):
     img = torch.rand(1, 1, 3, 8)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(ShapeError, match="image: expected at least 4 px per side"):
         detect(img)
     monkeypatch.setattr(detection, "_COMPILED", False)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(ShapeError, match="image: expected at least 4 px per side"):
         detect(img)
 
 

@@ -9,7 +9,7 @@ import torch
 from motion_tracks import make_tracks
 
 import egorefine.motion.solve as solve
-from egorefine.core import ValueRangeError
+from egorefine.core import DTypeError, ValueRangeError
 from egorefine.geometry import make_intrinsics, motion_to_twist, project, transform_points, twist_to_motion, unproject
 from egorefine.motion import _solve_numba, solve_ego_motion
 
@@ -211,7 +211,8 @@ def test_torch_path_where_compiled_does_not_apply(monkeypatch):
     res = solve_ego_motion(tr.points_prev, points, tr.disparity, tr.K, tr.baseline)  # a gradient is wanted
     res.motion.sum().backward()
     assert torch.isfinite(points.grad).all()
-    solve_ego_motion(*_args(tr), weights=torch.ones(1, 60, dtype=torch.float16))
+    with pytest.raises(DTypeError, match="weights: expected float32 or float64"):  # refused at the door
+        solve_ego_motion(*_args(tr), weights=torch.ones(1, 60, dtype=torch.float16))
     monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)
     solve_ego_motion(*_args(tr))
     monkeypatch.setattr(solve, "_COMPILED_SOLVE", True)
