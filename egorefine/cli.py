@@ -35,6 +35,13 @@ _RUN_JSON = "run.json"
 # Matcher choices of `egorefine run`: COST or COST+sgm, passed to the refiner as stereo_cost / aggregation.
 _MATCHERS = ("sad", "zncc", "census", "sad+sgm", "zncc+sgm", "census+sgm")
 _INVALID_RGB = (128, 128, 128)
+_EXAMPLES = """examples:
+  egorefine demo --frames 8 --out results/demo
+  egorefine run my_rig/ --layout folders --calib my_rig/stereo.yaml --out out/
+  egorefine run raw/2011_09_26/2011_09_26_drive_0001_sync --layout kitti-raw --out out/
+  egorefine run odometry/dataset/sequences/00 --layout kitti-odometry --frames 0:200 --out out/
+  egorefine run V1_01_easy --layout euroc --max-disparity 48 --out out/
+  egorefine eval out/ truth/ --traj out/trajectory_tum.txt --gt-traj out/groundtruth_tum.txt --json scores.json"""
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
@@ -602,7 +609,8 @@ def _command(sub, common: argparse.ArgumentParser, name: str, summary: str, desc
 def _build_parser() -> argparse.ArgumentParser:
     from .data import CAMERAS, LAYOUTS
 
-    parser = _Parser(prog="egorefine", description=__doc__, formatter_class=_Formatter)
+    parser = _Parser(prog="egorefine", description=__doc__.replace("``", "'"), epilog=_EXAMPLES,
+                     formatter_class=_Formatter)
     parser.add_argument("--version", action="version", version=f"egorefine {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     common = _common()
