@@ -26,8 +26,10 @@ __all__ = [
     "translation_error",
     "rotation_error_deg",
     "compose_motions",
+    "motions_from_poses",
     "relative_pose_error",
     "absolute_trajectory_error",
+    "evaluate_trajectory",
 ]
 
 
@@ -195,6 +197,21 @@ def compose_motions(motions: torch.Tensor) -> torch.Tensor:
     return torch.stack(poses)
 
 
+def motions_from_poses(poses: torch.Tensor) -> torch.Tensor:
+    """Per-frame motions ``camera_t_T_camera_{t-1}`` ``(T, 4, 4)`` from poses ``world_T_camera_t`` ``(T, 4, 4)``.
+
+    The inverse of :func:`compose_motions` (up to the first pose, which it cannot recover): ``motions[0]`` is the
+    identity, ``motions[t] = inv(poses[t]) @ poses[t - 1]``.
+
+    >>> step = torch.eye(4).repeat(3, 1, 1); step[:, 2, 3] = -0.1
+    >>> torch.allclose(motions_from_poses(compose_motions(step))[1:], step[1:])
+    True
+    """
+    check_shape(poses, ["T", "4", "4"], "poses")
+    first = torch.eye(4, dtype=poses.dtype, device=poses.device)[None]
+    return torch.cat([first, torch.linalg.solve(poses[1:], poses[:-1])])
+
+
 def relative_pose_error(est: torch.Tensor, gt: torch.Tensor) -> dict[str, float]:
     """RPE over consecutive frames of per-frame motions ``(T, 4, 4)`` (``t = 0`` skipped).
 
@@ -230,3 +247,37 @@ def absolute_trajectory_error(est_poses: torch.Tensor, gt_poses: torch.Tensor, a
         R = U @ D @ Vh
         p = (p - mp) @ R.T + mq
     return float((p - q).pow(2).sum(-1).mean().sqrt())
+
+
+def evaluate_trajectory(est_poses: torch.Tensor, gt_poses: torch.Tensor) -> dict[str, float]:
+    """Trajectory metrics of ``world_T_camera`` poses ``(T, 4, 4)`` against truth, as Python floats.
+
+    Frame-to-frame RPE (:func:`relative_pose_error` of :func:`motions_from_poses`) and the ATE after a rigid
+    alignment (:func:`absolute_trajectory_error`); both trajectories must have the same frames, in order.
+
+    Args:
+        est_poses: ``(T, 4, 4)`` estimated poses, ``T >= 2``.
+        gt_poses: ``(T, 4, 4)`` true poses of the same frames.
+
+    Returns:
+        ``{"frames", "rpe_translation_rmse_m", "rpe_translation_median_m", "rpe_rotation_mean_deg",
+        "rpe_rotation_median_deg", "ate_rmse_m", "path_length_m"}`` (``path_length_m``: the true path's length).
+
+    Example:
+        >>> gt = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1); gt[:, 2, 3] = torch.tensor([0.0, 1.0, 2.0])
+        >>> est = gt.clone(); est[2, 2, 3] = 2.5
+        >>> m = evaluate_trajectory(est, gt)
+        >>> m["frames"], round(m["rpe_translation_rmse_m"] ** 2, 6), m["path_length_m"]  # steps off by 0 and 0.5 m
+        (3.0, 0.125, 2.0)
+    """
+    check_shape(est_poses, ["T", "4", "4"], "est_poses")
+    check_shape(gt_poses, ["T", "4", "4"], "gt_poses", {"T": est_poses.shape[0]})
+    if est_poses.shape[0] < 2:
+        raise ShapeError(f"est_poses: expected at least 2 poses, got {est_poses.shape[0]}")
+    est, gt = est_poses.double(), gt_poses.double()
+    rpe = relative_pose_error(motions_from_poses(est), motions_from_poses(gt))
+    out = {"frames": float(est.shape[0])}
+    out.update({f"rpe_{k}": v for k, v in rpe.items()})
+    out["ate_rmse_m"] = absolute_trajectory_error(est, gt)
+    out["path_length_m"] = float((gt[1:, :3, 3] - gt[:-1, :3, 3]).norm(dim=-1).sum())
+    return out

@@ -11,11 +11,25 @@ import cv2
 import numpy as np
 import torch
 
-__all__ = ["colorize_disparity", "save_row_figure"]
+__all__ = ["colorize_disparity", "save_maps_figure", "save_row_figure", "save_trajectory_figure"]
+
+#: colour of pixels without a value in every figure (mid grey: outside the turbo and magma colour maps)
+INVALID_GREY = 0.5
 
 
-def colorize_disparity(disparity: torch.Tensor, max_disparity: float, valid: torch.Tensor | None = None) -> np.ndarray:
-    """A ``(H, W)`` disparity map as an ``(H, W, 3)`` uint8 RGB image (turbo colour map, invalid = black).
+def colorize_disparity(
+    disparity: torch.Tensor,
+    max_disparity: float,
+    valid: torch.Tensor | None = None,
+    invalid_color: tuple[int, int, int] = (0, 0, 0),
+) -> np.ndarray:
+    """A ``(H, W)`` disparity map as an ``(H, W, 3)`` uint8 RGB image (turbo colour map, 0 px to ``max_disparity``).
+
+    Args:
+        disparity: ``(H, W)`` (or with leading ones) disparity in pixels.
+        max_disparity: the disparity shown at the top of the colour map, px.
+        valid: same shape, bool; pixels that are False get ``invalid_color`` (default: all valid).
+        invalid_color: RGB of invalid pixels; black by default, ``egorefine run`` previews use grey.
 
     >>> colorize_disparity(torch.ones(4, 5), 8.0).shape
     (4, 5, 3)
@@ -24,8 +38,127 @@ def colorize_disparity(disparity: torch.Tensor, max_disparity: float, valid: tor
     scaled = np.clip(d / max(max_disparity, 1e-6) * 255.0, 0, 255).astype(np.uint8)
     rgb = cv2.cvtColor(cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
     if valid is not None:
-        rgb[~valid.detach().cpu().reshape(d.shape).numpy().astype(bool)] = 0
+        rgb[~valid.detach().cpu().reshape(d.shape).numpy().astype(bool)] = invalid_color
     return rgb
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _masked(m: torch.Tensor) -> np.ma.MaskedArray:
+    """A map as a masked array, non-finite pixels masked (drawn in the colour map's "bad" colour)."""
+    a = m.detach().float().cpu().numpy()
+    return np.ma.masked_invalid(a)
+
+
+def _show(ax, m: torch.Tensor, cmap: str, vmin: float, vmax: float, title: str, colorbar: str | None,
+          extend: str = "neither"):
+    colours = _colormap(cmap)
+    im = ax.imshow(_masked(m), cmap=colours, vmin=vmin, vmax=vmax, interpolation="nearest")
+    ax.set_title(title, fontsize=9)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    if colorbar is not None:
+        ax.figure.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=colorbar, extend=extend)
+    return im
+
+
+def _colormap(name: str):
+    """A copy of matplotlib's colour map ``name`` whose "bad" (NaN, masked) colour is :data:`INVALID_GREY`."""
+    import matplotlib
+
+    return matplotlib.colormaps[name].with_extremes(bad=str(INVALID_GREY))
+
+
+def _save(fig, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    _pyplot().close(fig)
+    return path
+
+
+def save_maps_figure(
+    path: str | Path,
+    image: torch.Tensor,
+    maps: dict[str, torch.Tensor],
+    truth: torch.Tensor | None = None,
+    max_disparity: float | None = None,
+    max_error: float = 1.0,
+    title: str = "",
+) -> Path:
+    """The left image, disparity maps with a colour bar each, and (given ``truth``) their error maps.
+
+    Pixels without a value (NaN in a map) are drawn grey (:data:`INVALID_GREY`), never as disparity 0; the error
+    maps are grey where either the map or the truth has none.
+
+    Args:
+        path: PNG to write.
+        image: ``(H, W)`` grey left image in [0, 1].
+        maps: name -> ``(H, W)`` disparity in pixels, NaN where the method has no value (e.g. ``"stereo"``,
+            ``"refined"``).
+        truth: ``(H, W)`` true disparity, NaN where unknown; adds a "truth" panel and an error row.
+        max_disparity: top of the disparity colour scale, px (default: the largest finite value shown).
+        max_error: top of the error colour scale, px (default 1 px: the errors that matter here are sub-pixel);
+            larger errors take its top colour (the colour bar's arrow).
+        title: figure title.
+
+    Returns:
+        ``path``.
+    """
+    plt = _pyplot()
+    panels = dict(maps) if truth is None else {"truth": truth, **maps}
+    vmax = max_disparity or max(float(np.nanmax(_masked(m).filled(np.nan))) for m in panels.values())
+    rows = 1 if truth is None else 2
+    cols = len(panels) + 1
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.9 * rows), constrained_layout=True, squeeze=False)
+    _show(axes[0, 0], image, "gray", 0.0, 1.0, "left image", None)
+    for ax, (name, m) in zip(axes[0, 1:], panels.items(), strict=True):
+        _show(ax, m, "turbo", 0.0, vmax, name, "disparity (px)")
+    if truth is not None:
+        axes[1, 0].axis("off")
+        axes[1, 1].axis("off")
+        for ax, (name, m) in zip(axes[1, 2:], maps.items(), strict=True):
+            _show(ax, (m - truth).abs(), "magma", 0.0, max_error, f"|{name} - truth|", "error (px)", extend="max")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def save_trajectory_figure(path: str | Path, trajectories: dict[str, torch.Tensor], title: str = "") -> Path:
+    """Top view (x right, z forward, metres) of camera positions of several ``world_T_camera`` trajectories.
+
+    The camera frame is X right, Y down, Z forward (PAPER.md), so a rig moving on level ground stays in the x-z
+    plane; the first pose of each trajectory is marked with a circle.
+
+    Args:
+        path: PNG to write.
+        trajectories: name -> ``(T, 4, 4)`` poses ``world_T_camera`` (e.g. ``"estimated"``, ``"truth"``).
+        title: figure title.
+
+    Returns:
+        ``path``.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 5), constrained_layout=True)
+    styles = ["k-", "C1--", "C0-", "C2-", "C3-"]
+    for (name, poses), style in zip(trajectories.items(), styles * 2, strict=False):
+        p = poses.detach().double().cpu()[:, :3, 3].numpy()
+        ax.plot(p[:, 0], p[:, 2], style, lw=1.3, label=name)
+        ax.plot(p[:1, 0], p[:1, 2], style[:2].rstrip("-") + "o")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m, forward)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or "trajectory, top view")
+    return _save(fig, path)
 
 
 def save_row_figure(
@@ -41,18 +174,18 @@ def save_row_figure(
     Args:
         path: PNG to write.
         row: image row to plot.
-        curves: name -> ``(H, W)`` disparity map (``NaN`` where a method has no value).
-        maps: name -> ``(H, W)`` maps to show as images under the plot (default: ``curves``).
-        max_disparity: colour scale of the maps.
+        curves: name -> ``(H, W)`` disparity map (``NaN`` where a method has no value: a gap in its curve).
+        maps: name -> ``(H, W)`` maps to show as images under the plot (default: ``curves``); NaN pixels are drawn
+            grey (:data:`INVALID_GREY`), and the last map carries the colour bar.
+        max_disparity: colour scale of the maps, px (default: the largest finite value).
         title: figure title.
+
+    Returns:
+        ``path``.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     maps = curves if maps is None else maps
-    vmax = max_disparity or max(float(torch.nan_to_num(m).max()) for m in maps.values())
+    vmax = max_disparity or max(float(np.nanmax(_masked(m).filled(np.nan))) for m in maps.values())
     fig = plt.figure(figsize=(4 * max(len(maps), 2), 7), constrained_layout=True)
     grid = fig.add_gridspec(2, len(maps))
     ax = fig.add_subplot(grid[0, :])
@@ -65,12 +198,6 @@ def save_row_figure(
     ax.legend(loc="best", fontsize=8)
     for i, (name, m) in enumerate(maps.items()):
         a = fig.add_subplot(grid[1, i])
-        a.imshow(torch.nan_to_num(m).detach().cpu().numpy(), cmap="turbo", vmin=0, vmax=vmax)
+        _show(a, m, "turbo", 0.0, vmax, name, "disparity (px)" if i == len(maps) - 1 else None)
         a.axhline(row, color="w", lw=0.6)
-        a.set_title(name, fontsize=9)
-        a.axis("off")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

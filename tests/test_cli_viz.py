@@ -1,14 +1,15 @@
-"""The `egorefine folder` command and the row figure, on small rendered data."""
+"""The deprecated `egorefine folder` command and the figures, on small rendered data."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from egorefine.cli import main
 from egorefine.data import read_pfm, render_sequence
-from egorefine.viz import colorize_disparity, save_row_figure
+from egorefine.viz import colorize_disparity, save_maps_figure, save_row_figure, save_trajectory_figure
 
 
 @pytest.fixture(scope="module")
@@ -29,9 +30,9 @@ def test_folder_command_writes_one_accurate_map_per_frame(seq, tmp_path):
     assert main(argv) == 0
     maps = sorted((tmp_path / "out").glob("*.pfm"))
     assert len(maps) == 3
-    last = read_pfm(maps[-1])[None]  # (1, 1, H, W)
+    last = read_pfm(maps[-1])[None]  # (1, 1, H, W); +inf where the refiner has no value
     gt = seq.disparity[2:3]
-    ok = (last > 0) & ~seq.occluded[2:3]
+    ok = torch.isfinite(last) & ~seq.occluded[2:3]
     assert ok.float().mean() > 0.8
     assert (last - gt).abs()[ok].median() < 0.2
 
@@ -43,3 +44,26 @@ def test_row_figure_and_colours(seq, tmp_path):
     path = save_row_figure(tmp_path / "row.png", 60, {"truth": seq.disparity[0, 0], "again": seq.disparity[1, 0]})
     image = cv2.imread(str(path))
     assert image is not None and image.shape[0] > 300 and image.shape[1] > 400
+
+
+def _grey_pixels(path) -> int:
+    image = cv2.imread(str(path)).astype(int)
+    return int(((image >= 126) & (image <= 129)).all(-1).sum())
+
+
+def test_maps_figure_draws_missing_values_grey(seq, tmp_path):
+    truth = seq.disparity[0, 0]
+    holes = truth.clone()
+    holes[:, :80] = float("nan")  # no value in the left half
+    dark = torch.zeros(120, 160)  # a black left image: grey pixels can only come from the NaN halves
+    full = save_maps_figure(tmp_path / "full.png", dark, {"a": truth, "b": truth}, truth=truth)
+    half = save_maps_figure(tmp_path / "half.png", dark, {"a": truth, "b": holes}, truth=truth)
+    assert cv2.imread(str(full)).shape == cv2.imread(str(half)).shape
+    # One map panel and one error panel are half grey: several thousand grey pixels more at this size.
+    assert _grey_pixels(half) - _grey_pixels(full) > 5000
+
+
+def test_trajectory_figure(seq, tmp_path):
+    path = save_trajectory_figure(tmp_path / "t.png", {"truth": seq.poses, "estimated": seq.poses.flip(0)})
+    image = cv2.imread(str(path))
+    assert image is not None and image.shape[0] > 300

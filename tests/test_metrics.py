@@ -14,7 +14,9 @@ from egorefine.metrics import (
     distinct_levels,
     epe,
     evaluate_disparity,
+    evaluate_trajectory,
     median_error,
+    motions_from_poses,
     relative_pose_error,
     rmse,
     rotation_error_deg,
@@ -74,11 +76,17 @@ def test_motion_errors():
     assert rotation_error_deg(a, c @ a).item() == pytest.approx(0.003, rel=0.05)
 
 
-def test_trajectory_metrics():
-    g = torch.Generator().manual_seed(2)
-    twists = torch.randn(6, 6, dtype=torch.float64, generator=g) * torch.tensor([0.05, 0.05, 0.1, 0.01, 0.01, 0.01])
+def _random_motions(T: int, seed: int) -> torch.Tensor:
+    """``T`` seeded float64 frame-to-frame motions of a walking pace, the identity first."""
+    g = torch.Generator().manual_seed(seed)
+    twists = torch.randn(T, 6, dtype=torch.float64, generator=g) * torch.tensor([0.05, 0.05, 0.1, 0.01, 0.01, 0.01])
     motions = se3_exp(twists)
     motions[0] = torch.eye(4, dtype=torch.float64)
+    return motions
+
+
+def test_trajectory_metrics():
+    motions = _random_motions(6, seed=2)
     poses = compose_motions(motions)
     # Composing back: camera_t_T_camera_{t-1} = inv(pose_t) @ pose_{t-1}.
     torch.testing.assert_close(torch.linalg.inv(poses[1:]) @ poses[:-1], motions[1:])
@@ -92,3 +100,24 @@ def test_trajectory_metrics():
     shifted = poses.clone()
     shifted[:, 0, 3] += 0.03
     assert absolute_trajectory_error(shifted, poses, align=False) == pytest.approx(0.03)
+
+
+def test_motions_from_poses_inverts_compose_and_evaluate_trajectory():
+    motions = _random_motions(7, seed=5)
+    poses = compose_motions(motions)
+    torch.testing.assert_close(motions_from_poses(poses), motions, atol=1e-12, rtol=0)
+    # The same motions from another world origin: a perfect estimate, before and after alignment.
+    world = se3_exp(torch.tensor([[1.0, 2.0, -0.5, 0.3, 0.2, -0.1]], dtype=torch.float64))[0]
+    perfect = evaluate_trajectory(world @ poses, poses)
+    assert perfect["ate_rmse_m"] < 1e-9 and perfect["rpe_translation_rmse_m"] < 1e-9
+    assert perfect["rpe_rotation_mean_deg"] < 1e-5 and perfect["frames"] == 7.0
+    steps = (poses[1:, :3, 3] - poses[:-1, :3, 3]).norm(dim=-1)
+    assert perfect["path_length_m"] == pytest.approx(float(steps.sum()))
+    # One motion 4 cm too long along x: RPE sees it on that frame only (rmse over the 6 steps).
+    wrong = motions.clone()
+    wrong[3, 0, 3] += 0.04
+    m = evaluate_trajectory(compose_motions(wrong), poses)
+    assert m["rpe_translation_rmse_m"] == pytest.approx(0.04 / math.sqrt(6))
+    assert m["rpe_rotation_mean_deg"] < 1e-5 and m["ate_rmse_m"] > 0.005
+    with pytest.raises(ShapeError, match="at least 2"):
+        evaluate_trajectory(poses[:1], poses[:1])
