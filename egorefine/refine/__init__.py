@@ -2,10 +2,12 @@
 
 from .correct import CorrectDisparity, Correction, correct_disparity
 from .cracks import close_cracks
+from .health import Status
 from .predict import PredictDisparity, Prediction, fill_holes_background, predict_disparity
 from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
 __all__ = [
+    "Status",
     "CorrectDisparity",
     "Correction",
     "correct_disparity",

@@ -45,6 +45,7 @@ from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_re
 from . import _fuse_numba, _predict_numba
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
+from .health import Status, disagreeing_regions, exposure_jumped, flag, stereo_failed, tracking_collapsed
 from .predict import Prediction, predict_disparity
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
@@ -114,6 +115,9 @@ class RefinerOutput(NamedTuple):
         confidence: ``(B, 1, H, W)`` in [0, 1]; low on hole-filled pixels.
         motion_ok: ``(B,)`` bool, the ego-motion solve succeeded (True on the first frame).
         num_tracks: ``(B,)`` features that were tracked into this frame.
+        status: ``(B,)`` int64 bits of :class:`~egorefine.refine.health.Status`: what happened to each item on
+            this frame (stereo forced, motion failed, scene change, measurement rejected, prediction reset, exposure
+            jump); 0 on an ordinary frame.
     """
 
     disparity: torch.Tensor
@@ -124,6 +128,7 @@ class RefinerOutput(NamedTuple):
     confidence: torch.Tensor
     motion_ok: torch.Tensor
     num_tracks: torch.Tensor
+    status: torch.Tensor
 
 
 
@@ -561,7 +566,13 @@ class EgoMotionRefiner(nn.Module):
             valid_prev=state.valid,
             method=self.motion_method,
         )
-        ok, motion = ego.ok, ego.motion  # identity where the solve failed
+        # A scene change (most tracks lost at once: a swapped, covered or blinded camera) counts as a failed motion.
+        collapsed = tracking_collapsed((state.weights > 0).sum(1), (tracked.weights > 0).sum(1))
+        ok = ego.ok & ~collapsed
+        motion = torch.where(collapsed[:, None, None], eye, ego.motion)  # identity where the solve failed
+        status = flag(~ok, Status.MOTION_FAILED) | flag(collapsed, Status.SCENE_CHANGE)
+        if state.pyramid is not None:
+            status = status | flag(exposure_jumped(state.pyramid[-1], pyramid[-1]), Status.EXPOSURE_JUMP)
         # 3. predict disparity (eq. 1 + splat). The map is moved from the keyframe with the composed motion
         # rather than from the previous prediction: each splat re-discretises depth edges, and chained splats
         # let those sub-pixel edge errors random-walk from frame to frame.
@@ -599,9 +610,24 @@ class EgoMotionRefiner(nn.Module):
             why = "verification" if frame % self.verify_every == 0 else (
                 "the ego-motion failed" if not bool(ok.all()) else "adaptive: low coverage or confidence")
             meas = self._stereo(grey, right, frame, why)
+            if frame % self.verify_every != 0:
+                status = status | int(Status.STEREO_FORCED)
             cor = self._correct(pred, meas, state.outlier_count, verification=True)
-            # Where the motion failed the prediction is meaningless: restart that item from stereo.
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
+            # Stereo that failed wholesale (swapped, black or noise images) is rejected: the prediction stays. Regions
+            # where the two disagree as a whole (an occluder, a wrong motion) take the measurement.
+            rejected = stereo_failed(meas.valid, pred.valid) & ok
+            reset = disagreeing_regions(pred.disparity, pred.valid, meas.disparity, meas.valid)
+            reset = reset & ~rejected[:, None, None, None]
+            status = status | flag(rejected, Status.MEASUREMENT_REJECTED)
+            status = status | flag(reset.flatten(1).any(1), Status.PREDICTION_RESET)
+            if bool(rejected.any()) or bool(reset.any()):
+                keep = rejected[:, None, None, None]
+                disparity = torch.where(keep, pred.disparity, torch.where(reset, meas.disparity, disparity))
+                variance = torch.where(keep, pred.variance, torch.where(reset, meas.variance, variance))
+                valid = torch.where(keep, pred.valid, torch.where(reset, meas.valid, valid))
+                outliers = torch.where(keep | reset, torch.zeros_like(outliers), outliers)
+            # Where the motion failed the prediction is meaningless: restart that item from stereo.
             if not bool(ok.all()):
                 bad = (~ok)[:, None, None, None]
                 disparity = torch.where(bad, meas.disparity, disparity)
@@ -638,7 +664,7 @@ class EgoMotionRefiner(nn.Module):
             keypoints = torch.where(need[:, None, None], new_kp, keypoints)
             weights = torch.where(need[:, None], new_w, weights)
 
-        out = RefinerOutput(disparity, valid, motion, stereo_ran, variance, confidence, ok, live)
+        out = RefinerOutput(disparity, valid, motion, stereo_ran, variance, confidence, ok, live, status)
         if stereo_ran:
             key = (disparity, variance, valid, eye.clone(), 0)
         else:
@@ -658,8 +684,9 @@ class EgoMotionRefiner(nn.Module):
         keypoints, weights = replenish(grey, empty_kp, empty_w, max_features=self.max_features)
         ok = torch.ones(B, dtype=torch.bool, device=grey.device)
         confidence = _confidence(meas.valid, meas.variance)
+        status = torch.zeros(B, dtype=torch.int64, device=grey.device)
         out = RefinerOutput(
-            meas.disparity, meas.valid, eye.clone(), True, meas.variance, confidence, ok, (weights > 0).sum(1)
+            meas.disparity, meas.valid, eye.clone(), True, meas.variance, confidence, ok, (weights > 0).sum(1), status
         )
         state = RefinerState(
             grey, keypoints, weights, meas.disparity, meas.variance, meas.valid,
@@ -681,6 +708,7 @@ class SequenceResult(NamedTuple):
         confidence: ``(T, B, 1, H, W)``.
         motion_ok: ``(T, B)`` bool.
         num_tracks: ``(T, B)`` features tracked into each frame.
+        status: ``(T, B)`` int64 :class:`~egorefine.refine.health.Status` bits of each frame.
     """
 
     disparity: torch.Tensor
@@ -691,6 +719,7 @@ class SequenceResult(NamedTuple):
     confidence: torch.Tensor
     motion_ok: torch.Tensor
     num_tracks: torch.Tensor
+    status: torch.Tensor
 
 
 def refine_sequence(
@@ -747,4 +776,5 @@ def refine_sequence(
         torch.stack([o.confidence for o in outs]),
         torch.stack([o.motion_ok for o in outs]),
         torch.stack([o.num_tracks for o in outs]),
+        torch.stack([o.status for o in outs]),
     )
