@@ -71,7 +71,9 @@ def _links(disp: torch.Tensor, valid: torch.Tensor, max_diff: float, dim: int) -
 def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: int, max_diff: float) -> torch.Tensor:
     b, _, h, w = disp.shape
     total = b * h * w
-    index = torch.arange(total, device=disp.device).view(b, 1, h, w)
+    # int32 labels where they fit: the propagation below reads and writes them max_size times
+    dtype = torch.int32 if total < 2**31 - 1 else torch.int64
+    index = torch.arange(total, device=disp.device, dtype=dtype).view(b, 1, h, w)
     none = torch.full_like(index, total)  # the label of invalid pixels (and of "no link")
     label = torch.where(valid, index, none)
     links = {dim: _links(disp, valid, max_diff, dim) for dim in (-1, -2)}
@@ -79,10 +81,10 @@ def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: in
         for dim, link in links.items():
             n = label.shape[dim]
             lo, hi = label.narrow(dim, 0, n - 1), label.narrow(dim, 1, n - 1)
-            best = torch.where(link, torch.minimum(lo, hi), none.narrow(dim, 0, n - 1))
-            label = label.clone()
-            label.narrow(dim, 0, n - 1).copy_(torch.minimum(lo, best))
-            label.narrow(dim, 1, n - 1).copy_(torch.minimum(label.narrow(dim, 1, n - 1), best))
+            # the smaller label of each linked pair, given to both (each minimum is a new tensor before its copy)
+            best = torch.where(link, torch.minimum(lo, hi), total)
+            lo.copy_(torch.minimum(lo, best))
+            hi.copy_(torch.minimum(hi, best))
     # a region whose labels still differ across one of its links has not settled: it is large
     unsettled = torch.zeros(b, 1, h, w, dtype=torch.bool, device=disp.device)
     for dim, link in links.items():
@@ -90,7 +92,7 @@ def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: in
         differ = link & (label.narrow(dim, 0, n - 1) != label.narrow(dim, 1, n - 1))
         unsettled.narrow(dim, 0, n - 1).logical_or_(differ)
         unsettled.narrow(dim, 1, n - 1).logical_or_(differ)
-    flat = label.flatten()
+    flat = label.flatten().long()
     size = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, valid.flatten().long())
     open_ = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, unsettled.flatten().long())
     small = (size[flat] <= max_size) & (open_[flat] == 0)

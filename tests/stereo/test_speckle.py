@@ -117,3 +117,12 @@ def test_match_stereo_speckle_option(options):
     assert torch.equal(out.disparity, torch.where(expected, plain.disparity, torch.zeros_like(plain.disparity)))
     assert torch.equal(out.variance[expected], plain.variance[expected])
     assert (out.variance[~expected] == INVALID_VARIANCE).all()
+
+
+def test_gradient_through_the_filtered_output():
+    g = torch.Generator().manual_seed(1)
+    left = torch.rand(1, 1, 24, 40, generator=g, dtype=torch.float64, requires_grad=True)
+    right = torch.roll(left.detach(), -3, dims=-1).requires_grad_(True)
+    out = match_stereo(left, right, 8, block_size=5, differentiable=True, speckle_size=10)
+    out.disparity[out.valid].sum().backward()
+    assert torch.isfinite(left.grad).all() and torch.isfinite(right.grad).all() and left.grad.abs().sum() > 0
