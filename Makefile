@@ -33,6 +33,7 @@ lint: $(VENV)/.installed-dev
 
 bench: $(VENV)/.installed-dev
 	$(PY) benchmarks/stereo.py
+	$(PY) benchmarks/real.py
 	$(PY) benchmarks/ego_motion.py
 	$(PY) benchmarks/refine.py
 	$(PY) benchmarks/euroc_static.py

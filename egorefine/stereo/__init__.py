@@ -1,5 +1,6 @@
 """Dense stereo matching: cost volumes (SAD, ZNCC, census), box or SGM aggregation,
-winner-takes-all with sub-pixel fit or soft-argmin, and left-right / uniqueness / texture checks."""
+winner-takes-all with sub-pixel fit or soft-argmin, left-right / uniqueness / texture checks and
+speckle removal."""
 
 from ._sgm_numba import release_workspace as release_sgm_workspace
 from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
@@ -7,6 +8,7 @@ from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_match
 from .regions import mask_boxes, match_stereo_regions
 from .residual import match_residual
 from .sgm import sgm_aggregate
+from .speckle import remove_speckles
 
 __all__ = [
     "block_matching",
@@ -18,6 +20,7 @@ __all__ = [
     "StereoOutput",
     "cost_volume",
     "sgm_aggregate",
+    "remove_speckles",
     "release_sgm_workspace",
     "prefilter_xsobel",
     "census_transform",

@@ -34,6 +34,7 @@ from . import _sad_numba, _sgm_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
+from .speckle import remove_speckles
 
 __all__ = ["StereoOutput", "block_matching", "match_stereo", "BlockMatching", "INVALID_VARIANCE"]
 
@@ -73,7 +74,8 @@ class StereoOutput(NamedTuple):
 
 def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int,
                   cost: str, aggregation: str, subpixel_fit: str, sgm_paths: int, temperature: float | None,
-                  differentiable: bool, soft_radius: int | None, census_window: int) -> None:
+                  differentiable: bool, soft_radius: int | None, census_window: int, speckle_size: int = 0,
+                  speckle_range: float = 1.0) -> None:
     dims = check_shape(left, ["B", "1|3", "H", "W"], "left")
     check_shape(right, ["B", "1|3", "H", "W"], "right", dims)
     check_same_device(left, "left", right=right)
@@ -105,6 +107,10 @@ def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, m
         raise ValueRangeError(f"soft_radius: expected an int >= 1 or None, got {soft_radius!r}")
     if temperature is not None and not temperature > 0:
         raise ValueRangeError(f"temperature: expected > 0, got {temperature}")
+    if isinstance(speckle_size, bool) or not isinstance(speckle_size, int) or speckle_size < 0:
+        raise ValueRangeError(f"speckle_size: expected an int >= 0, got {speckle_size!r}")
+    if not speckle_range >= 0:
+        raise ValueRangeError(f"speckle_range: expected >= 0, got {speckle_range}")
 
 
 def _gather(vol: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -267,6 +273,8 @@ def match_stereo(
     differentiable: bool = False,
     temperature: float | None = None,
     soft_radius: int | None = 2,
+    speckle_size: int = 0,
+    speckle_range: float = 1.0,
 ) -> StereoOutput:
     """Dense stereo matching of a rectified pair; disparity, validity and per-pixel variance.
 
@@ -291,6 +299,9 @@ def match_stereo(
         temperature: soft-argmin temperature in cost units (None: per-cost default).
         soft_radius: the soft-argmin averages the candidates within this many px of the hard winner
             (None: the whole range, which multimodal real-image costs bias badly).
+        speckle_size, speckle_range: after the checks, invalidate every region of at most ``speckle_size``
+            pixels whose 4-neighbours differ by at most ``speckle_range`` px (:func:`remove_speckles`; OpenCV's
+            ``speckleWindowSize`` / ``speckleRange``, typically 100 and 1-2 px; 0: off).
 
     Returns:
         :class:`StereoOutput` ``(disparity, valid, variance)``, each ``(B, 1, H, W)``.
@@ -303,7 +314,23 @@ def match_stereo(
     (torch.Size([2, 1, 16, 24]), torch.bool, torch.Size([2, 1, 16, 24]))
     """
     _check_inputs(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel_fit, sgm_paths,
-                  temperature, differentiable, soft_radius, census_window)
+                  temperature, differentiable, soft_radius, census_window, speckle_size, speckle_range)
+    out = _match(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel, subpixel_fit,
+                 lr_check, lr_threshold, uniqueness_ratio, texture_threshold, prefilter, prefilter_cap, census_window,
+                 sgm_p1, sgm_p2, sgm_paths, differentiable, temperature, soft_radius)
+    if speckle_size > 0:
+        valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
+        out = StereoOutput(torch.where(valid, out.disparity, torch.zeros_like(out.disparity)), valid,
+                           torch.where(valid, out.variance, torch.full_like(out.variance, INVALID_VARIANCE)))
+    return out
+
+
+def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int, cost: str,
+           aggregation: str, subpixel: bool, subpixel_fit: str, lr_check: bool, lr_threshold: int,
+           uniqueness_ratio: float, texture_threshold: float, prefilter: bool, prefilter_cap: float,
+           census_window: int, sgm_p1: float | None, sgm_p2: float | None, sgm_paths: int, differentiable: bool,
+           temperature: float | None, soft_radius: int | None) -> StereoOutput:
+    """:func:`match_stereo` on checked inputs, before the speckle filter."""
     grey_l, grey_r = to_grey(left), to_grey(right)
     b, _, h, w = grey_l.shape
     num = max_disparity - min_disparity

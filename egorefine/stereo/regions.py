@@ -184,7 +184,8 @@ def match_stereo_regions(
     scale = matching._integer_scale(settings["cost"], settings["aggregation"], settings["prefilter"],
                                     settings["block_size"], settings["prefilter_cap"],
                                     settings["differentiable"] or needs_grad, max_disparity - settings["min_disparity"])
-    if scale and matching._compiled_sad(grey_l):  # match_stereo would run the compiled SAD kernel: on windows here
+    # match_stereo would run the compiled SAD kernel: on windows here (the speckle filter needs whole regions)
+    if scale and matching._compiled_sad(grey_l) and not settings["speckle_size"]:
         # an item whose windows would cost more than full_fraction of the frame is matched whole
         work = [int(_costs(np.array(item, dtype=np.int64).reshape(-1, 4), W, int(margin), extra, 0).sum())
                 for item in boxes]

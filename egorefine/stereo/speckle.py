@@ -1,0 +1,146 @@
+"""Small-region (speckle) removal: invalidate connected patches of similar disparity that are too small.
+
+A wrong match on weak texture or noise rarely agrees with its neighbours over a large area, while a
+surface does: pixels are linked to their 4 neighbours when both are valid and their disparities differ
+by at most ``max_diff`` px, and every connected region of at most ``max_size`` pixels is marked
+invalid (the rule of OpenCV's ``filterSpeckles``, on float disparities).
+
+Two paths with the same output. The torch reference (any device) propagates the smallest pixel index
+along the links for ``max_size - 1`` steps: a region of at most ``max_size`` pixels spans no more steps,
+so its label is then final; a region whose labels still differ across a link is larger and kept. The
+CPU path (numba, float32 and float64) floods each region once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..core import DTypeError, ValueRangeError, check_shape
+from ..core._jit import AVAILABLE
+from ..core._jit import jit as _jit
+
+__all__ = ["remove_speckles"]
+
+_COMPILED = True  # False: always the torch reference (for comparisons)
+
+
+if AVAILABLE:
+
+    @_jit
+    def _flood(disp, valid, max_size, max_diff, out):
+        """``out[b, y, x]`` = valid and in a linked region of more than ``max_size`` pixels, per image ``b``."""
+        B, H, W = disp.shape
+        seen = np.zeros((H, W), np.bool_)
+        stack = np.empty(H * W, np.int64)
+        for b in range(B):
+            seen[:] = False
+            for start in range(H * W):
+                y0, x0 = start // W, start % W
+                if seen[y0, x0] or not valid[b, y0, x0]:
+                    continue
+                seen[y0, x0] = True
+                stack[0] = start
+                top, size = 1, 0
+                while size < top:  # the stack keeps every pixel of the region: stack[:top]
+                    p = stack[size]
+                    size += 1
+                    y, x = p // W, p % W
+                    d = disp[b, y, x]
+                    for k in range(4):
+                        yy = y + (1 if k == 0 else -1 if k == 1 else 0)
+                        xx = x + (1 if k == 2 else -1 if k == 3 else 0)
+                        if 0 <= yy < H and 0 <= xx < W and not seen[yy, xx] and valid[b, yy, xx] \
+                                and abs(disp[b, yy, xx] - d) <= max_diff:
+                            seen[yy, xx] = True
+                            stack[top] = yy * W + xx
+                            top += 1
+                keep = size > max_size
+                for i in range(size):
+                    p = stack[i]
+                    out[b, p // W, p % W] = keep
+
+
+def _links(disp: torch.Tensor, valid: torch.Tensor, max_diff: float, dim: int) -> torch.Tensor:
+    """Links between neighbours along ``dim`` (-1: x, -2: y): both valid, disparities within ``max_diff``."""
+    n = disp.shape[dim]
+    a, b = disp.narrow(dim, 0, n - 1), disp.narrow(dim, 1, n - 1)
+    return valid.narrow(dim, 0, n - 1) & valid.narrow(dim, 1, n - 1) & ((b - a).abs() <= max_diff)
+
+
+def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: int, max_diff: float) -> torch.Tensor:
+    b, _, h, w = disp.shape
+    total = b * h * w
+    # int32 labels where they fit: the propagation below reads and writes them max_size times
+    dtype = torch.int32 if total < 2**31 - 1 else torch.int64
+    index = torch.arange(total, device=disp.device, dtype=dtype).view(b, 1, h, w)
+    none = torch.full_like(index, total)  # the label of invalid pixels (and of "no link")
+    label = torch.where(valid, index, none)
+    links = {dim: _links(disp, valid, max_diff, dim) for dim in (-1, -2)}
+    for _ in range(max_size - 1):  # a region of s <= max_size pixels spans at most s - 1 links
+        for dim, link in links.items():
+            n = label.shape[dim]
+            lo, hi = label.narrow(dim, 0, n - 1), label.narrow(dim, 1, n - 1)
+            # the smaller label of each linked pair, given to both (each minimum is a new tensor before its copy)
+            best = torch.where(link, torch.minimum(lo, hi), total)
+            lo.copy_(torch.minimum(lo, best))
+            hi.copy_(torch.minimum(hi, best))
+    # a region whose labels still differ across one of its links has not settled: it is large
+    unsettled = torch.zeros(b, 1, h, w, dtype=torch.bool, device=disp.device)
+    for dim, link in links.items():
+        n = label.shape[dim]
+        differ = link & (label.narrow(dim, 0, n - 1) != label.narrow(dim, 1, n - 1))
+        unsettled.narrow(dim, 0, n - 1).logical_or_(differ)
+        unsettled.narrow(dim, 1, n - 1).logical_or_(differ)
+    flat = label.flatten().long()
+    size = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, valid.flatten().long())
+    open_ = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, unsettled.flatten().long())
+    small = (size[flat] <= max_size) & (open_[flat] == 0)
+    return valid & ~small.view(b, 1, h, w)
+
+
+def _use_compiled(disp: torch.Tensor) -> bool:
+    """The numba flood applies: float32 / float64 CPU tensors, not traced or compiled by torch (the filter only
+    reads the detached disparity, so a gradient elsewhere does not matter)."""
+    return (_COMPILED and AVAILABLE and disp.device.type == "cpu" and disp.dtype in (torch.float32, torch.float64)
+            and not torch.jit.is_tracing() and not torch.compiler.is_compiling())
+
+
+def remove_speckles(disparity: torch.Tensor, valid: torch.Tensor, max_size: int = 100,
+                    max_diff: float = 1.0) -> torch.Tensor:
+    """Validity without the small regions of similar disparity (speckles).
+
+    Args:
+        disparity: ``(B, 1, H, W)`` disparity in px (values where ``valid`` is False are ignored).
+        valid: ``(B, 1, H, W)`` bool, the pixels that have a disparity.
+        max_size: regions of at most this many pixels are removed (OpenCV's ``speckleWindowSize``; 0: none).
+        max_diff: neighbours whose disparities differ by at most this many px belong to one region
+            (OpenCV's ``speckleRange``, there in 1/16 px for SGBM).
+
+    Returns:
+        ``(B, 1, H, W)`` bool: ``valid`` with the pixels of small regions set False.
+
+    Raises:
+        ShapeError, DTypeError, ValueRangeError: bad input, naming the argument.
+
+    >>> d = torch.full((1, 1, 8, 8), 5.0); d[..., 2:4, 2:4] = 20.0  # a 4-pixel island
+    >>> int(remove_speckles(d, torch.ones(1, 1, 8, 8, dtype=torch.bool), max_size=10).sum())
+    60
+    """
+    dims = check_shape(disparity, ["B", "1", "H", "W"], "disparity")
+    check_shape(valid, ["B", "1", "H", "W"], "valid", dims)
+    if valid.dtype != torch.bool:
+        raise DTypeError(f"valid: expected a bool tensor, got {valid.dtype}")
+    if isinstance(max_size, bool) or not isinstance(max_size, int) or max_size < 0:
+        raise ValueRangeError(f"max_size: expected an int >= 0, got {max_size!r}")
+    if not max_diff >= 0:
+        raise ValueRangeError(f"max_diff: expected >= 0, got {max_diff}")
+    if max_size == 0:
+        return valid
+    disp = disparity.detach()
+    if _use_compiled(disp):
+        out = np.zeros(valid.shape[:1] + valid.shape[2:], np.bool_)
+        _flood(np.ascontiguousarray(disp[:, 0].numpy()), np.ascontiguousarray(valid[:, 0].numpy()), max_size,
+               np.array(max_diff, dtype=disp.numpy().dtype)[()], out)
+        return torch.from_numpy(out)[:, None]
+    return _remove_speckles_torch(disp, valid, max_size, max_diff)

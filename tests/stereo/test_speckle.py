@@ -1,0 +1,128 @@
+"""Speckle removal: known regions, both paths equal, OpenCV's rule, bad input, and its use in match_stereo."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import egorefine.stereo.speckle as speckle
+from egorefine.core import DTypeError, ShapeError, ValueRangeError
+from egorefine.stereo import INVALID_VARIANCE, match_stereo, remove_speckles
+
+
+def _both(disp, valid, max_size, max_diff):
+    """(compiled, torch reference) outputs."""
+    previous = speckle._COMPILED
+    try:
+        out = []
+        for compiled in (True, False):
+            speckle._COMPILED = compiled
+            out.append(remove_speckles(disp, valid, max_size, max_diff))
+    finally:
+        speckle._COMPILED = previous
+    return out
+
+
+def _random_map(seed: int, b: int = 2, h: int = 24, w: int = 31):
+    g = torch.Generator().manual_seed(seed)
+    # piecewise-constant patches plus noise: regions of many sizes, some linked across small steps
+    coarse = torch.randint(0, 6, (b, 1, h // 4 + 1, w // 4 + 1), generator=g).float() * 1.5
+    disp = torch.nn.functional.interpolate(coarse, scale_factor=4, mode="nearest")[..., :h, :w].contiguous()
+    disp = disp + 0.4 * torch.rand(b, 1, h, w, generator=g)
+    noisy = torch.rand(b, 1, h, w, generator=g) < 0.1
+    disp = torch.where(noisy, 20 * torch.rand(b, 1, h, w, generator=g), disp)
+    valid = torch.rand(b, 1, h, w, generator=g) > 0.15
+    return disp, valid
+
+
+def test_island_removed_and_surface_kept():
+    disp = torch.full((1, 1, 10, 12), 5.0)
+    disp[..., 2:4, 2:5] = 20.0  # 6 pixels
+    disp[..., 7, 9] = 30.0  # 1 pixel
+    valid = torch.ones(1, 1, 10, 12, dtype=torch.bool)
+    for out in _both(disp, valid, 6, 1.0):
+        assert not out[..., 2:4, 2:5].any() and not out[0, 0, 7, 9]
+        assert int(out.sum()) == 120 - 7
+    for out in _both(disp, valid, 5, 1.0):  # the 6-pixel island is no longer small enough
+        assert out[..., 2:4, 2:5].all() and not out[0, 0, 7, 9]
+
+
+def test_slope_within_range_is_one_region():
+    # a ramp of 0.9 px per column links across all of it; 1.1 px per column splits it into columns
+    x = torch.arange(12.0).view(1, 1, 1, 12).expand(1, 1, 5, 12)
+    valid = torch.ones(1, 1, 5, 12, dtype=torch.bool)
+    for out in _both(0.9 * x, valid, 10, 1.0):
+        assert out.all()
+    for out in _both(1.1 * x, valid, 10, 1.0):
+        assert not out.any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize(("max_size", "max_diff"), [(1, 0.5), (9, 1.0), (30, 2.0)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_equals_torch_reference(seed, max_size, max_diff, dtype):
+    disp, valid = _random_map(seed)
+    disp = disp.to(dtype)
+    compiled, reference = _both(disp, valid, max_size, max_diff)
+    assert torch.equal(compiled, reference)
+    assert not (compiled & ~valid).any()
+
+
+def test_matches_opencv_filter_speckles():
+    cv2 = pytest.importorskip("cv2")
+    disp, valid = _random_map(3, b=1, h=40, w=50)
+    q = torch.round(disp * 16)  # OpenCV's fixed point: 1 px = 16 units, range 1 px = 16
+    theirs = np.where(valid[0, 0].numpy(), q[0, 0].numpy(), -16).astype(np.int16)
+    cv2.filterSpeckles(theirs, -16, 12, 16)
+    for out in _both(q / 16, valid, 12, 1.0):
+        assert np.array_equal(out[0, 0].numpy(), theirs >= 0)
+
+
+def test_batch_items_are_independent():
+    disp, valid = _random_map(4, b=3)
+    for compiled in (True, False):
+        speckle._COMPILED = compiled
+        try:
+            whole = remove_speckles(disp, valid, 9)
+            alone = torch.cat([remove_speckles(disp[i : i + 1], valid[i : i + 1], 9) for i in range(3)])
+        finally:
+            speckle._COMPILED = True
+        assert torch.equal(whole, alone)
+
+
+def test_bad_input():
+    d, v = torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 4, dtype=torch.bool)
+    with pytest.raises(ShapeError, match="valid"):
+        remove_speckles(d, v[..., :3])
+    with pytest.raises(DTypeError, match="valid"):
+        remove_speckles(d, v.float())
+    with pytest.raises(ValueRangeError, match="max_size"):
+        remove_speckles(d, v, -1)
+    with pytest.raises(ValueRangeError, match="max_diff"):
+        remove_speckles(d, v, 4, float("nan"))
+    with pytest.raises(ValueRangeError, match="speckle_size"):
+        match_stereo(torch.rand(1, 1, 16, 24), torch.rand(1, 1, 16, 24), 8, block_size=5, speckle_size=2.5)
+
+
+@pytest.mark.parametrize("options", [{}, {"cost": "census", "aggregation": "sgm", "block_size": 5}])
+def test_match_stereo_speckle_option(options):
+    g = torch.Generator().manual_seed(0)
+    left = torch.rand(1, 1, 40, 64, generator=g)
+    right = torch.roll(left, -4, dims=-1) + 0.05 * torch.rand(1, 1, 40, 64, generator=g)
+    plain = match_stereo(left, right, 16, **options)
+    out = match_stereo(left, right, 16, speckle_size=20, **options)
+    expected = remove_speckles(plain.disparity, plain.valid, 20, 1.0)
+    assert torch.equal(out.valid, expected)
+    assert torch.equal(out.disparity, torch.where(expected, plain.disparity, torch.zeros_like(plain.disparity)))
+    assert torch.equal(out.variance[expected], plain.variance[expected])
+    assert (out.variance[~expected] == INVALID_VARIANCE).all()
+
+
+def test_gradient_through_the_filtered_output():
+    g = torch.Generator().manual_seed(1)
+    left = torch.rand(1, 1, 24, 40, generator=g, dtype=torch.float64, requires_grad=True)
+    right = torch.roll(left.detach(), -3, dims=-1).requires_grad_(True)
+    out = match_stereo(left, right, 8, block_size=5, differentiable=True, speckle_size=10)
+    out.disparity[out.valid].sum().backward()
+    assert torch.isfinite(left.grad).all() and torch.isfinite(right.grad).all() and left.grad.abs().sum() > 0
