@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import enum
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -32,6 +33,7 @@ __all__ = [
     "tracking_collapsed",
     "exposure_jumped",
     "stereo_failed",
+    "count_per_item",
     "disagreeing_regions",
 ]
 
@@ -108,9 +110,20 @@ def stereo_failed(measured_valid: torch.Tensor, predicted_valid: torch.Tensor) -
     Args:
         measured_valid, predicted_valid: ``(B, 1, H, W)`` bool.
     """
-    measured = measured_valid.flatten(1).sum(1).to(torch.float64)
-    predicted = predicted_valid.flatten(1).sum(1).to(torch.float64)
-    return measured < STEREO_FAILURE_SHARE * predicted
+    measured, predicted = count_per_item(measured_valid), count_per_item(predicted_valid)
+    return measured.to(torch.float64) < STEREO_FAILURE_SHARE * predicted.to(torch.float64)
+
+
+def count_per_item(mask: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` int64: the True pixels of each item of a ``(B, ...)`` bool mask.
+
+    CPU masks are counted with numpy: a torch reduction over a full map would wake torch's OpenMP threads, which
+    then spin beside the compiled kernels of the next stage.
+    """
+    if mask.device.type == "cpu":
+        flat = mask.detach().reshape(mask.shape[0], -1).numpy()
+        return torch.from_numpy(np.count_nonzero(flat, axis=1).astype(np.int64))
+    return mask.flatten(1).sum(1)
 
 
 def disagreeing_regions(
@@ -133,6 +146,15 @@ def disagreeing_regions(
         >>> disagreeing_regions(e, ok, s, ok)[0, 0, ::8, ::8].tolist()[:2]
         [[True, False, False, False], [False, False, False, False]]
     """
+    if predicted.device.type == "cpu":  # numpy: no torch pass over the full map (see count_per_item)
+        return torch.from_numpy(_disagreeing_regions_numpy(
+            predicted.detach().numpy(), predicted_valid.numpy(), measured.detach().numpy(), measured_valid.numpy()))
+    return _disagreeing_regions_torch(predicted, predicted_valid, measured, measured_valid)
+
+
+def _disagreeing_regions_torch(predicted: torch.Tensor, predicted_valid: torch.Tensor, measured: torch.Tensor,
+                               measured_valid: torch.Tensor) -> torch.Tensor:
+    """:func:`disagreeing_regions` in torch (other devices), the same rule."""
     H, W = predicted.shape[-2:]
     with torch.no_grad():
         both = predicted_valid & measured_valid
@@ -142,3 +164,27 @@ def disagreeing_regions(
         share_off = F.avg_pool2d(off.to(predicted.dtype), tile, tile, ceil_mode=True)
         region = (support >= DISAGREEMENT_MIN_SUPPORT) & (share_off > DISAGREEMENT_SHARE * support)
         return region.repeat_interleave(tile, -2).repeat_interleave(tile, -1)[..., :H, :W]
+
+
+def _tile_shares(mask: np.ndarray, tile: int) -> np.ndarray:
+    """Share of True pixels in each ``tile`` x ``tile`` block of ``(B, 1, H, W)`` (partial blocks at the far edges
+    count only their own pixels), ``(B, 1, ceil(H / tile), ceil(W / tile))``."""
+    B, C, H, W = mask.shape
+    h, w = -(-H // tile), -(-W // tile)
+    padded = np.zeros((B, C, h * tile, w * tile), dtype=np.float32)
+    padded[..., :H, :W] = mask
+    ones = np.zeros((h * tile, w * tile), dtype=np.float32)
+    ones[:H, :W] = 1.0
+    sums = padded.reshape(B, C, h, tile, w, tile).sum(axis=(3, 5))
+    return sums / ones.reshape(h, tile, w, tile).sum(axis=(1, 3))
+
+
+def _disagreeing_regions_numpy(predicted: np.ndarray, predicted_valid: np.ndarray, measured: np.ndarray,
+                               measured_valid: np.ndarray) -> np.ndarray:
+    """:func:`disagreeing_regions` in numpy, the same rule."""
+    H, W = predicted.shape[-2:]
+    both = predicted_valid & measured_valid
+    off = both & (np.abs(predicted - measured) > DISAGREEMENT_PX)
+    support, share_off = _tile_shares(both, DISAGREEMENT_TILE), _tile_shares(off, DISAGREEMENT_TILE)
+    region = (support >= DISAGREEMENT_MIN_SUPPORT) & (share_off > DISAGREEMENT_SHARE * support)
+    return np.ascontiguousarray(region.repeat(DISAGREEMENT_TILE, -2).repeat(DISAGREEMENT_TILE, -1)[..., :H, :W])

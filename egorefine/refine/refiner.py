@@ -45,7 +45,15 @@ from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_re
 from . import _fuse_numba, _predict_numba
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
-from .health import Status, disagreeing_regions, exposure_jumped, flag, stereo_failed, tracking_collapsed
+from .health import (
+    Status,
+    count_per_item,
+    disagreeing_regions,
+    exposure_jumped,
+    flag,
+    stereo_failed,
+    tracking_collapsed,
+)
 from .predict import Prediction, predict_disparity
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
@@ -618,10 +626,10 @@ class EgoMotionRefiner(nn.Module):
             # where the two disagree as a whole (an occluder, a wrong motion) take the measurement.
             rejected = stereo_failed(meas.valid, pred.valid) & ok
             reset = disagreeing_regions(pred.disparity, pred.valid, meas.disparity, meas.valid)
-            reset = reset & ~rejected[:, None, None, None]
             status = status | flag(rejected, Status.MEASUREMENT_REJECTED)
-            status = status | flag(reset.flatten(1).any(1), Status.PREDICTION_RESET)
-            if bool(rejected.any()) or bool(reset.any()):
+            reset_items = (count_per_item(reset) > 0) & ~rejected  # (a rejected item keeps its whole prediction)
+            status = status | flag(reset_items, Status.PREDICTION_RESET)
+            if bool(rejected.any()) or bool(reset_items.any()):
                 keep = rejected[:, None, None, None]
                 disparity = torch.where(keep, pred.disparity, torch.where(reset, meas.disparity, disparity))
                 variance = torch.where(keep, pred.variance, torch.where(reset, meas.variance, variance))

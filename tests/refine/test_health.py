@@ -132,3 +132,16 @@ def test_ordinary_frames_raise_no_flag_but_resets(sequence):
     for fusion in ("paper", "kalman"):
         for out in _run(fusion, sequence.left, sequence.right, K, b):
             assert int(out.status[0]) & ~int(Status.PREDICTION_RESET) == 0
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 37, 53), (1, 1, 24, 40), (3, 1, 100, 7)])
+def test_disagreeing_regions_numpy_and_torch_agree(shape):
+    from egorefine.refine.health import _disagreeing_regions_torch
+
+    g = torch.Generator().manual_seed(sum(shape))
+    e = torch.rand(shape, generator=g) * 3
+    s = e + (torch.rand(shape, generator=g) > 0.4).float() * 2
+    ev, sv = torch.rand(shape, generator=g) > 0.3, torch.rand(shape, generator=g) > 0.2
+    numpy_path = disagreeing_regions(e, ev, s, sv)
+    assert numpy_path.any() and not numpy_path.all()
+    assert torch.equal(numpy_path, _disagreeing_regions_torch(e, ev, s, sv))
