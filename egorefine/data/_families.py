@@ -19,7 +19,7 @@ __all__ = ["FAMILIES", "FAMILY_NAMES", "FAMILY_TEXEL", "family_textures", "famil
 FAMILIES: dict[str, str] = {
     "print": "the original rich tile: band-limited noise with soft discs and rectangles (posters, printed boxes, "
     "clutter)",
-    "painted": "painted plaster: faint smooth stains and fainter grain (about 1 % contrast)",
+    "painted": "painted plaster: faint smooth stains and a fainter roller stipple (about 1 % contrast)",
     "sky": "a bright, almost uniform field with a faint smooth variation",
     "plain": "a nearly uniform grey with faint grain (plastic, metal, painted wood)",
     "grain": "fine isotropic grain of medium contrast (asphalt, concrete, carpet)",
@@ -53,7 +53,7 @@ def family_tile(name: str, size: int = _SIZE) -> torch.Tensor:
     y, x = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
                           indexing="ij")
     if name == "painted":
-        tile = 0.72 + 0.010 * _periodic_noise(size, 1.3, gen) + 0.003 * _periodic_noise(size, 0.2, gen)
+        tile = 0.72 + 0.010 * _periodic_noise(size, 1.3, gen) + 0.005 * _periodic_noise(size, 0.5, gen)  # stipple
     elif name == "sky":
         tile = 0.90 + 0.004 * _periodic_noise(size, 1.8, gen)
     elif name == "plain":
