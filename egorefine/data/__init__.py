@@ -1,5 +1,7 @@
 """Data: a synthetic stereo-video renderer with exact ground truth, file formats and sequence loaders."""
 
+from ._families import FAMILIES
+from ._imaging import IMAGING, Imaging
 from .calib import CAMERAS, StereoCalibration, read_calibration, rectify_maps
 from .euroc import EurocSequence, load_euroc, read_euroc_sensor
 from .folder import ImageFolderSequence, read_grey
@@ -21,10 +23,13 @@ __all__ = [
     "CAMERAS",
     "LAYOUTS",
     "DISPARITY_FORMATS",
+    "FAMILIES",
+    "IMAGING",
     "MOTIONS",
     "PRESETS",
     "SCENES",
     "EurocSequence",
+    "Imaging",
     "ImageFolderSequence",
     "RigPreset",
     "StereoCalibration",

@@ -14,7 +14,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-__all__ = ["MipTexture", "make_texture"]
+__all__ = ["MipTexture", "make_texture", "mip_levels"]
 
 
 class MipTexture:
@@ -111,6 +111,13 @@ def _texture_levels(seed: int, size: int, num_levels: int) -> torch.Tensor:
         base[iy, ix] = patch * (1 - alpha) + (0.5 + level[i] + 0.5 * tex[iy, ix]) * alpha
     # Squash smoothly into [0.08, 0.92].
     albedo = 0.5 + 0.42 * torch.tanh((base - 0.5) / 0.42)
+    return mip_levels(albedo, num_levels)
+
+
+def mip_levels(albedo: torch.Tensor, num_levels: int) -> torch.Tensor:
+    """Mip stack ``(1, 1, L, S + 2, S + 2)`` of a periodic tile ``(S, S)``: level ``k`` Gaussian-filtered for a
+    footprint of ``2**k`` texels (in the Fourier domain, so the tile stays periodic), each padded circularly."""
+    size = albedo.shape[-1]
     spec = torch.fft.fft2(albedo)
     fy = torch.fft.fftfreq(size, dtype=torch.float64)[:, None]
     fx = torch.fft.fftfreq(size, dtype=torch.float64)[None, :]

@@ -19,10 +19,12 @@ import numpy as np
 import torch
 
 from ..core import ValueRangeError, check_choice, progress
+from ._families import FAMILY_NAMES, FAMILY_TEXEL, family_textures
+from ._imaging import IMAGING, Cameras, Imaging, resolve_imaging
 from ._sequence import SequenceMixin
 from ._texture import make_texture
 
-__all__ = ["RigPreset", "StereoSequence", "PRESETS", "SCENES", "MOTIONS", "render_sequence"]
+__all__ = ["RigPreset", "StereoSequence", "PRESETS", "SCENES", "MOTIONS", "IMAGING", "Imaging", "render_sequence"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,8 @@ class StereoSequence(SequenceMixin):
         K: ``(3, 3)`` intrinsics of both (rectified) cameras.
         baseline: metres.
         fps: frames per second.
+        exposure: ``(T, 2)`` linear gain of the (left, right) camera at each frame, relative to an ideal camera
+            (the camera's gain times the exposure drift; ones for ideal imaging and for loaded sequences).
     """
 
     left: torch.Tensor
@@ -106,6 +110,7 @@ class StereoSequence(SequenceMixin):
     K: torch.Tensor
     baseline: float
     fps: float
+    exposure: torch.Tensor | None = None
 
     def __repr__(self) -> str:
         T, _, H, W = self.left.shape
@@ -202,6 +207,7 @@ class _Box:
     rot: np.ndarray  # (3, 3) columns are the box axes in the world
     half: np.ndarray  # (3,) half extents
     inside: bool = False  # True for the enclosing room (seen from within)
+    kind: str = "object"  # what it stands for (crate, pillar, building, rail, ...): picks its texture family
 
 
 class _SceneBuilder:
@@ -225,13 +231,14 @@ class _SceneBuilder:
         self.x0, self.x1, self.y0, self.z0, self.z1 = x0, x1, y0, z0, z1
         self.boxes.append(
             _Box(np.array([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2]), np.eye(3),
-                 np.array([(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2]), inside=True)
+                 np.array([(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2]), inside=True, kind="room")
         )
 
     def add(self, centre: tuple[float, float, float], half: tuple[float, float, float], yaw: float = 0.0,
-            tilt: float = 0.0) -> None:
+            tilt: float = 0.0, kind: str = "object") -> None:
         rot = _rot_y(yaw) @ _rot_z(tilt)
-        self.boxes.append(_Box(np.asarray(centre, dtype=np.float64), rot, np.asarray(half, dtype=np.float64)))
+        self.boxes.append(_Box(np.asarray(centre, dtype=np.float64), rot, np.asarray(half, dtype=np.float64),
+                               kind=kind))
 
     def x_extent(self, half: np.ndarray, yaw: float) -> float:
         """Half extent along world x of a box yawed by ``yaw``."""
@@ -247,21 +254,21 @@ class _SceneBuilder:
                 yaw = rng.uniform(-0.5, 0.5) if kind < 0.5 else 0.0
                 if kind < 0.7:  # crate on the floor
                     half = np.array([rng.uniform(0.15, 0.4), rng.uniform(0.2, 0.75), rng.uniform(0.15, 0.45)]) * s
-                    yc = self.floor - half[1]
+                    yc, name = self.floor - half[1], "crate"
                 elif kind < 0.85:  # pillar floor to ceiling
                     w = rng.uniform(0.1, 0.25, 2) * s
                     half = np.array([w[0], (self.floor - self.y0) / 2, w[1]])
-                    yc = (self.floor + self.y0) / 2
+                    yc, name = (self.floor + self.y0) / 2, "pillar"
                 else:  # box on a shelf, mid-height
                     half = np.array([rng.uniform(0.1, 0.3), rng.uniform(0.1, 0.3), rng.uniform(0.1, 0.3)]) * s
-                    yc = self.floor - tall * rng.uniform(0.3, 0.6)
+                    yc, name = self.floor - tall * rng.uniform(0.3, 0.6), "shelf"
                 ext = self.x_extent(half, yaw)
                 lane_edge = (self.xmax + clearance) if side > 0 else (self.xmin - clearance)
                 wall = self.x1 if side > 0 else self.x0
                 room_for = abs(wall - lane_edge) - 2 * ext
                 if room_for > 0:
                     xc = lane_edge + side * (ext + rng.uniform(0.3, 1.0) * room_for)
-                    self.add((xc, yc, z), tuple(half), yaw=yaw)
+                    self.add((xc, yc, z), tuple(half), yaw=yaw, kind=name)
                 z += spacing * rng.uniform(0.6, 1.4)
 
     def hanging(self, spacing: float, clearance_above: float) -> None:
@@ -275,11 +282,14 @@ class _SceneBuilder:
                 h = (bottom - top) * rng.uniform(0.3, 0.9) / 2
                 xc = rng.uniform(self.x0 + 0.3 * s, self.x1 - 0.3 * s)
                 self.add((xc, top + h, z), (rng.uniform(0.2, 0.6) * s, h, rng.uniform(0.05, 0.2) * s),
-                         yaw=rng.uniform(-0.3, 0.3))
+                         yaw=rng.uniform(-0.3, 0.3), kind="hanging")
             z += spacing * rng.uniform(0.6, 1.4)
 
 
-def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.random.Generator) -> list[_Box]:
+def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.random.Generator,
+                 detail_rng: np.random.Generator | None = None) -> list[_Box]:
+    """The boxes of ``scene`` around the trajectory; with ``detail_rng``, thin structures are added after the
+    original layout (drawn from their own generator, so the layout itself does not change)."""
     b = _SceneBuilder(poses, preset, rng)
     s = b.s
     if scene == "corridor":
@@ -290,7 +300,7 @@ def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.rando
         for _ in range(3):
             half = np.array([rng.uniform(0.2, 0.5), rng.uniform(0.3, 0.9), rng.uniform(0.2, 0.5)]) * s
             b.add((rng.uniform(b.x0 + half[0], b.x1 - half[0]), b.floor - half[1],
-                   b.z1 - rng.uniform(1.0, 3.0) * s), tuple(half), yaw=rng.uniform(-0.6, 0.6))
+                   b.z1 - rng.uniform(1.0, 3.0) * s), tuple(half), yaw=rng.uniform(-0.6, 0.6), kind="crate")
     elif scene == "hall":
         b.room(half_width=4.0 * s, height_above=2.5 * s, back=4.0 * s)
         b.side_objects(clearance=0.8 * s, spacing=0.7 * s, tall=2.0 * s)
@@ -301,7 +311,8 @@ def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.rando
             while z < b.z1 - s:
                 half = (0.03 * s, rng.uniform(0.4, 0.9) * s, rng.uniform(0.3, 0.8) * s)
                 xc = (b.x1 if side > 0 else b.x0) - side * 0.5 * s
-                b.add((xc, b.floor - half[1] * 0.9, z), half, yaw=rng.uniform(-0.4, 0.4), tilt=side * 0.35)
+                b.add((xc, b.floor - half[1] * 0.9, z), half, yaw=rng.uniform(-0.4, 0.4), tilt=side * 0.35,
+                      kind="panel")
                 z += rng.uniform(3.0, 6.0) * s
     elif scene == "street":
         b.room(half_width=3.5 * s, height_above=6.0 * s, back=4.0 * s)
@@ -314,13 +325,109 @@ def _build_scene(scene: str, poses: np.ndarray, preset: RigPreset, rng: np.rando
                 height = rng.uniform(0.8, 5.5) * s
                 inner = (b.xmax + rng.uniform(2.0, 2.8) * s) if side > 0 else (b.xmin - rng.uniform(2.0, 2.8) * s)
                 xc = inner + side * depth
-                b.add((xc, b.floor - height / 2, z + length / 2), (depth, height / 2, length / 2))
+                b.add((xc, b.floor - height / 2, z + length / 2), (depth, height / 2, length / 2), kind="building")
                 z += length + rng.uniform(0.0, 0.6) * s
         # Parked 'cars' (low boxes) and poles at the kerb.
         b.side_objects(clearance=0.9 * s, spacing=1.2 * s, tall=0.6 * s)
     else:  # pragma: no cover - guarded by check_choice
         raise ValueRangeError(f"scene: unknown {scene!r}")
+    if detail_rng is not None:
+        _thin_structures(b, scene, detail_rng)
     return b.boxes
+
+
+def _thin_structures(b: _SceneBuilder, scene: str, rng: np.random.Generator) -> None:
+    """Rails with posts, pipes and poles: structures a few centimetres thick, outside the camera's lane."""
+    s = b.s
+
+    def railing(x: float, z0: float, z1: float, height: float, post_every: float, infill: bool) -> None:
+        b.add((x, b.floor - height, (z0 + z1) / 2), (0.02 * s, 0.02 * s, (z1 - z0) / 2), kind="rail")
+        z = z0
+        while z <= z1:
+            b.add((x, b.floor - height / 2, z), (0.015 * s, height / 2, 0.015 * s), kind="rail")
+            z += post_every * rng.uniform(0.9, 1.1)
+        if infill:  # slats between the posts, as a thin striped panel
+            b.add((x, b.floor - 0.5 * height, (z0 + z1) / 2), (0.003 * s, 0.4 * height, (z1 - z0) / 2),
+                  kind="railing")
+
+    def poles(x: float, z0: float, z1: float, height: float, every: tuple[float, float]) -> None:
+        z = z0 + rng.uniform(0.0, every[1])
+        while z < z1:
+            b.add((x, b.floor - height / 2, z), (0.02 * s, height / 2, 0.02 * s), kind="pole")
+            z += rng.uniform(*every)
+
+    if scene == "corridor":
+        for side in (-1.0, 1.0):
+            wall = b.x1 if side > 0 else b.x0
+            if rng.uniform() < 0.7:  # a handrail along the wall
+                railing(wall - side * 0.06 * s, b.z0 + 0.5 * s, b.z1 - 0.5 * s, 0.9 * s, 1.8 * s, infill=False)
+            # A pipe under the ceiling.
+            b.add((wall - side * rng.uniform(0.1, 0.3) * s, b.y0 + rng.uniform(0.05, 0.15) * s, (b.z0 + b.z1) / 2),
+                  (0.025 * s, 0.025 * s, (b.z1 - b.z0) / 2), kind="pipe")
+    elif scene == "hall":
+        side = rng.choice([-1.0, 1.0])
+        x = (b.xmax + 1.3 * s) if side > 0 else (b.xmin - 1.3 * s)
+        z0 = b.z0 + rng.uniform(1.0, 3.0) * s
+        railing(x, z0, min(z0 + rng.uniform(6.0, 10.0) * s, b.z1 - s), 1.0 * s, 1.2 * s, infill=True)
+        for side in (-1.0, 1.0):  # free-standing thin columns
+            x = (b.xmax + rng.uniform(1.0, 2.5) * s) if side > 0 else (b.xmin - rng.uniform(1.0, 2.5) * s)
+            poles(x, b.z0 + s, b.z1 - s, b.floor - b.y0, (3.0 * s, 6.0 * s))
+    elif scene == "street":
+        for side in (-1.0, 1.0):  # lamp and sign poles at the kerb
+            x = (b.xmax + 1.6 * s) if side > 0 else (b.xmin - 1.6 * s)
+            poles(x, b.z0, b.z1, 0.7 * s, (2.5 * s, 4.0 * s))
+        side = rng.choice([-1.0, 1.0])
+        x = (b.xmax + 1.4 * s) if side > 0 else (b.xmin - 1.4 * s)
+        z0 = b.z0 + rng.uniform(2.0, 6.0) * s
+        railing(x, z0, min(z0 + 6.0 * s, b.z1 - s), 0.17 * s, 0.5 * s, infill=False)
+
+
+# Texture families per surface kind, scene by scene: {kind: ((family, weight), ...)}. Room faces have the kinds
+# wall (sides), ceiling, floor, back and end; the other kinds are those of _SceneBuilder and _thin_structures.
+_FAMILY_TABLE: dict[str, dict[str, tuple[tuple[str, float], ...]]] = {
+    "corridor": {
+        "wall": (("painted", 0.7), ("brick", 0.3)), "ceiling": (("painted", 1.0),),
+        "floor": (("tiles", 0.5), ("grain", 0.5)), "end": (("painted", 0.5), ("print", 0.5)),
+        "crate": (("print", 0.5), ("plain", 0.3), ("stripes", 0.2)), "pillar": (("painted", 0.6), ("plain", 0.4)),
+        "hanging": (("plain", 0.5), ("print", 0.5)),
+    },
+    "hall": {
+        "wall": (("brick", 0.5), ("painted", 0.5)), "ceiling": (("painted", 1.0),), "floor": (("tiles", 1.0),),
+        "end": (("brick", 0.5), ("painted", 0.5)),
+        "crate": (("print", 0.5), ("plain", 0.3), ("stripes", 0.2)), "pillar": (("painted", 0.6), ("plain", 0.4)),
+        "panel": (("stripes", 0.5), ("print", 0.5)), "hanging": (("plain", 0.5), ("print", 0.5)),
+    },
+    "street": {
+        "wall": (("brick", 0.5), ("painted", 0.5)), "ceiling": (("sky", 1.0),), "floor": (("grain", 1.0),),
+        "end": (("painted", 1.0),),
+        "building": (("brick", 0.4), ("painted", 0.3), ("tiles", 0.15), ("print", 0.15)),
+        "crate": (("plain", 0.6), ("print", 0.4)), "pillar": (("painted", 0.5), ("plain", 0.5)),
+    },
+}
+_FAMILY_DEFAULT: dict[str, tuple[tuple[str, float], ...]] = {
+    "back": (("painted", 1.0),), "shelf": (("print", 1.0),), "rail": (("plain", 1.0),), "pipe": (("plain", 1.0),),
+    "pole": (("plain", 1.0),), "railing": (("stripes", 1.0),), "object": (("print", 1.0),),
+}
+_ROOM_KINDS = ("wall", "wall", "ceiling", "floor", "back", "end")  # by face 2 k + (side > 0) of the room box
+
+
+def _surface_families(scene: str, boxes: list[_Box], rng: np.random.Generator) -> np.ndarray:
+    """Texture family (an index into FAMILY_NAMES) of every face, ``(6 * len(boxes),)``, drawn per box (per face
+    for the room) from the scene's table."""
+    table = {**_FAMILY_DEFAULT, **_FAMILY_TABLE[scene]}
+    out = np.zeros(6 * len(boxes), dtype=np.int64)
+
+    def draw(kind: str) -> int:
+        names, weights = zip(*table[kind], strict=True)
+        w = np.asarray(weights) / sum(weights)
+        return FAMILY_NAMES.index(names[int(rng.choice(len(names), p=w))])
+
+    for i, box in enumerate(boxes):  # loop over boxes (tens)
+        if box.inside:
+            out[6 * i : 6 * i + 6] = [draw(kind) for kind in _ROOM_KINDS]
+        else:
+            out[6 * i : 6 * i + 6] = draw(box.kind)
+    return out
 
 
 def _lights(scene: str, boxes: list[_Box], poses: np.ndarray, preset: RigPreset) -> np.ndarray:
@@ -374,7 +481,8 @@ class _Renderer:
 
     def __init__(self, boxes: list[_Box], lights: np.ndarray, preset: RigPreset, K: np.ndarray,
                  height: int, width: int, rng: np.random.Generator, texture_seed: int,
-                 device: torch.device, dtype: torch.dtype) -> None:
+                 device: torch.device, dtype: torch.dtype, families: np.ndarray | None = None,
+                 family_rng: np.random.Generator | None = None) -> None:
         self.device, self.dtype = device, dtype
         self.h, self.w = height, width
         self.f, self.cx, self.cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 2])
@@ -392,13 +500,20 @@ class _Renderer:
         ang = rng.uniform(0, 2 * math.pi, n_faces)
         scl = rng.uniform(0.75, 1.35, n_faces) * preset.texel
         off = rng.uniform(0, 4096, (n_faces, 2))
+        gain = rng.uniform(0.9, 1.25, n_faces)
+        bias = rng.uniform(-0.05, 0.05, n_faces)
+        self.families = None
+        if families is not None:
+            ang, scl, gain, bias = self._family_layout(families, ang, scl, gain, bias, family_rng)
+            self.families = family_textures(str(device), dtype)
+            self.face_family = torch.as_tensor(families, device=device)
         # Texel coordinates = A_f @ (u, v) + off_f, A_f a rotation over the face's texel size.
         A = np.stack([np.cos(ang), -np.sin(ang), np.sin(ang), np.cos(ang)], -1).reshape(-1, 2, 2) / scl[:, None, None]
         self.face_A = t(A)
         self.face_off = t(off)
         self.face_texel = t(scl)
-        self.face_gain = t(rng.uniform(0.9, 1.25, n_faces))
-        self.face_bias = t(rng.uniform(-0.05, 0.05, n_faces))
+        self.face_gain = t(gain)
+        self.face_bias = t(bias)
         # A directional light (the sun outdoors, a window indoors): constant over each planar face.
         sun = np.array([0.4, -0.8, 0.45])
         sun_term = np.clip(self.np_faces["normal"] @ (sun / np.linalg.norm(sun)), 0.0, None)
@@ -409,6 +524,22 @@ class _Renderer:
         self.texture = make_texture(texture_seed, device=str(device), dtype=dtype)
         self.xs = torch.arange(width, device=device, dtype=dtype)
         self.ys = torch.arange(height, device=device, dtype=dtype)
+
+    def _family_layout(self, families: np.ndarray, ang: np.ndarray, scl: np.ndarray, gain: np.ndarray,
+                       bias: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+        """Placement of the texture families: periodic patterns upright at their physical size, a bright sky."""
+        ang, scl, gain, bias = ang.copy(), scl.copy(), gain.copy(), bias.copy()
+        jitter = rng.uniform(0.9, 1.1, len(families))
+        # Rows of a pattern run along the face's more horizontal axis (world y is vertical).
+        eu_up = np.abs(self.np_faces["eu"][:, 1]) > np.abs(self.np_faces["ev"][:, 1])
+        for k, name in enumerate(FAMILY_NAMES):  # loop over a handful of families
+            on = families == k
+            if FAMILY_TEXEL[name] is not None:
+                ang[on] = np.where(eu_up[on], 0.5 * math.pi, 0.0)
+                scl[on] = FAMILY_TEXEL[name] * jitter[on]
+            if name == "sky":  # unlit by the lamps and the sun: bright on its own
+                gain[on], bias[on] = 1.6, 0.0
+        return ang, scl, gain, bias
 
     # -- per camera: affine coefficients and bounding rectangles of the faces
 
@@ -535,7 +666,15 @@ class _Renderer:
         # Footprint of a pixel on the surface (geometric mean of its two axes) in texels: band-limits the texture.
         cos = (normal * dirs).sum(-1).abs() / dirs.norm(dim=-1)
         footprint = depth / (self.f * supersample * cos.clamp_min(1e-3).sqrt()) / self.face_texel[face]
-        albedo = self.texture.sample(tex_uv[:, 0], tex_uv[:, 1], footprint)
+        if self.families is None:
+            albedo = self.texture.sample(tex_uv[:, 0], tex_uv[:, 1], footprint)
+        else:
+            family = self.face_family[face]
+            albedo = torch.empty_like(depth)
+            for k, tex in enumerate(self.families):  # loop over a handful of texture families
+                idx = (family == k).nonzero().squeeze(1)
+                if idx.numel() > 0:
+                    albedo[idx] = tex.sample(tex_uv[idx, 0], tex_uv[idx, 1], footprint[idx])
         # Lambertian lighting from fixed point lights (view-independent, so left and right agree).
         irradiance = torch.zeros_like(depth)
         for light in self.lights:  # loop over a handful of lights
@@ -582,24 +721,51 @@ class _Renderer:
         return value, depth, faces
 
 
+def _right_pose(pose_l: np.ndarray, B: float) -> np.ndarray:
+    pose_r = pose_l.copy()
+    pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
+    return pose_r
+
+
+def _image_motion(renderer: _Renderer, depth: torch.Tensor, pose: np.ndarray, other: np.ndarray,
+                  sign: float) -> torch.Tensor:
+    """Displacement ``(H, W, 2)`` in pixels of each pixel's scene point between camera ``other`` and ``pose``
+    (``sign`` +1: ``other`` is the earlier frame; -1: the later one, so the result still points forward in time)."""
+    dt = renderer.dtype
+    rel = torch.as_tensor(np.linalg.inv(other) @ pose, device=renderer.device, dtype=dt)  # other_T_pose
+    ys, xs = torch.meshgrid(renderer.ys, renderer.xs, indexing="ij")
+    cam = torch.stack([(xs - renderer.cx) / renderer.f * depth, (ys - renderer.cy) / renderer.f * depth, depth], -1)
+    moved = cam @ rel[:3, :3].T + rel[:3, 3]
+    z = moved[..., 2].clamp_min(1e-3 * renderer.scale)  # points behind the other camera: keep the shift finite
+    proj = torch.stack([renderer.f * moved[..., 0] / z + renderer.cx, renderer.f * moved[..., 1] / z + renderer.cy], -1)
+    return sign * (torch.stack([xs, ys], -1) - proj)
+
+
 def _render_frames(renderer: _Renderer, poses: np.ndarray, f: float, B: float, noise_std: float,
-                   noise_gen: torch.Generator, antialias: bool, show_progress: bool) -> tuple[list, list, list, list]:
+                   noise_gen: torch.Generator, antialias: bool, show_progress: bool,
+                   cameras: Cameras | None = None) -> tuple[list, list, list, list]:
     """Render every frame: left and right images, left depth and the occlusion mask, each ``(H, W)``."""
     dev, dtype = renderer.device, renderer.dtype
     xs = torch.arange(renderer.w, device=dev, dtype=dtype)[None, :]
     num_frames = len(poses)
+    blur = cameras is not None and cameras.opts.motion_blur > 0 and num_frames > 1
     lefts, rights, depths, occs = [], [], [], []
     with torch.no_grad():
         for i in progress(range(num_frames), desc="render_sequence", enabled=show_progress):
             pose_l = poses[i]
-            pose_r = pose_l.copy()
-            pose_r[:3, 3] = pose_l[:3, 3] + B * pose_l[:3, 0]  # right camera: +B along the left camera's x axis
+            pose_r = _right_pose(pose_l, B)
             left, depth, _ = renderer.render_view(pose_l, antialias)
-            right, _, faces_r = renderer.render_view(pose_r, antialias)
+            right, depth_r, faces_r = renderer.render_view(pose_r, antialias)
             # Occlusion: the left point (x, y, Z) lies on the right ray through (x - d, y) at the same depth Z
             # (rectified rig); it is hidden if a face is nearer along that ray, or if it falls outside the image.
             disp = f * B / depth
             occluded = renderer.blocked(faces_r, xs - disp, 1.0 / depth) | (xs - disp < 0.0)
+            if cameras is not None:
+                j, sign = (i - 1, 1.0) if i > 0 else (1, -1.0)
+                flow_l = _image_motion(renderer, depth, pose_l, poses[j], sign) if blur else None
+                flow_r = _image_motion(renderer, depth_r, pose_r, _right_pose(poses[j], B), sign) if blur else None
+                left = cameras.apply(left, i, 0, flow_l)
+                right = cameras.apply(right, i, 1, flow_r)
             if noise_std > 0:
                 left = left + noise_std * torch.randn(left.shape, generator=noise_gen, device=dev, dtype=dtype)
                 right = right + noise_std * torch.randn(right.shape, generator=noise_gen, device=dev, dtype=dtype)
@@ -626,8 +792,16 @@ def render_sequence(
     noise_std: float = 0.0,
     antialias: bool = True,
     num_threads: int | None = 1,
+    imaging: str | Imaging = "realistic",
 ) -> StereoSequence:
     """Render a rectified stereo sequence with exact ground truth.
+
+    By default the images look like a camera's (``imaging="realistic"``): the scene's surfaces wear texture
+    families that fit them (painted walls and ceilings, sky, brick, floor tiles, stripes and railings, plain and
+    grainy surfaces, printed clutter), thin rails, posts, pipes and poles stand beside the path, and each camera
+    adds its own gain, offset, gamma and vignetting, a slow exposure drift, shot and read noise and 8-bit
+    quantisation. ``imaging="ideal"`` gives the original images: one rich texture on every surface, identical
+    noise-free float cameras. docs/rendering.md tables what each preset and scene contains.
 
     Args:
         num_frames: ``T`` frames.
@@ -641,19 +815,29 @@ def render_sequence(
         height, width: override the image size; the focal length scales with ``width`` unless ``focal`` is given.
         focal: override the focal length in pixels.
         baseline: override the baseline in metres.
-        noise_std: standard deviation of additive Gaussian sensor noise (seeded), 0 for none.
+        noise_std: standard deviation of extra additive Gaussian noise (seeded) in [0, 0.2], added after the
+            imaging model (so after quantisation); 0 for none. Default 0: the realistic model has its own noise.
         antialias: supersample pixels on geometric edges (4 samples; textures are always band-limited by
             mip-mapping).
         num_threads: torch intra-op threads while rendering on the CPU (restored afterwards); ``None`` keeps the
             current setting.
+        imaging: a key of :data:`IMAGING` (``"realistic"``, ``"ideal"``) or an :class:`Imaging` with chosen
+            options (e.g. ``Imaging.preset("realistic", noise=0.02, motion_blur=0.5)``). Default
+            ``"realistic"``: accuracy measured on ideal images does not carry over to cameras.
 
     Returns:
         :class:`StereoSequence` with ``left``, ``right``, ``disparity``, ``depth``, ``occluded`` ``(T, 1, H, W)``,
-        ``poses``, ``motions`` ``(T, 4, 4)``, ``K`` ``(3, 3)``, ``baseline`` and ``fps``.
+        ``poses``, ``motions`` ``(T, 4, 4)``, ``K`` ``(3, 3)``, ``baseline``, ``fps`` and ``exposure`` ``(T, 2)``.
 
-    >>> seq = render_sequence(num_frames=3, height=30, width=40, seed=1)
-    >>> seq.left.shape, seq.poses.shape, bool(torch.isfinite(seq.depth).all())
-    (torch.Size([3, 1, 30, 40]), torch.Size([3, 4, 4]), True)
+    Example:
+        >>> seq = render_sequence(num_frames=3, height=30, width=40, seed=1)
+        >>> seq.left.shape, seq.poses.shape, bool(torch.isfinite(seq.depth).all())
+        (torch.Size([3, 1, 30, 40]), torch.Size([3, 4, 4]), True)
+        >>> bool((seq.left * 255 == (seq.left * 255).round()).all())  # 8-bit cameras
+        True
+        >>> ideal = render_sequence(num_frames=1, height=30, width=40, seed=1, imaging="ideal")
+        >>> bool(torch.equal(ideal.left[0], ideal.right[0])), seq.exposure.shape
+        (False, torch.Size([3, 2]))
     """
     check_choice(preset, list(PRESETS), "preset")
     rig = PRESETS[preset]
@@ -672,17 +856,26 @@ def render_sequence(
     B = rig.baseline if baseline is None else float(baseline)
     if num_threads is not None and num_threads < 1:
         raise ValueRangeError(f"num_threads: expected >= 1 or None, got {num_threads}")
-    if not (f > 0 and B > 0 and noise_std >= 0):
-        raise ValueRangeError(f"focal, baseline must be > 0 and noise_std >= 0, got {f}, {B}, {noise_std}")
+    if not (f > 0 and B > 0):
+        raise ValueRangeError(f"focal, baseline: expected > 0, got {f}, {B}")
+    if not 0.0 <= noise_std <= 0.2:  # also rejects NaN
+        raise ValueRangeError(f"noise_std: expected a value in [0, 0.2], got {noise_std!r}")
+    opts = resolve_imaging(imaging)
+    varied = opts.surfaces == "varied"
     dev = torch.device("cpu") if device is None else torch.device(device)
     K = np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
 
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))
     poses = _trajectory(motion, num_frames, rig, rng)
-    boxes = _build_scene(scene, poses, rig, np.random.default_rng(np.random.SeedSequence([int(seed), 2])))
+    def gen(stream: int) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence([int(seed), stream]))
+
+    boxes = _build_scene(scene, poses, rig, gen(2), detail_rng=gen(5) if varied else None)
     lights = _lights(scene, boxes, poses, rig)
-    renderer = _Renderer(boxes, lights, rig, K, H, W, np.random.default_rng(np.random.SeedSequence([int(seed), 3])),
-                         texture_seed=0, device=dev, dtype=dtype)
+    families = _surface_families(scene, boxes, gen(4)) if varied else None
+    renderer = _Renderer(boxes, lights, rig, K, H, W, gen(3), texture_seed=0, device=dev, dtype=dtype,
+                         families=families, family_rng=gen(8) if varied else None)
+    cameras = None if opts.is_ideal else Cameras(opts, num_frames, H, W, int(seed), dev, dtype)
     noise_gen = torch.Generator(device=dev).manual_seed(int(seed) + 104729)
     # The renderer runs many medium-sized element-wise ops; on a shared machine the synchronisation of intra-op
     # threads costs far more than it saves (measured 10x slower with 2 threads under load), so by default it
@@ -692,7 +885,7 @@ def render_sequence(
         torch.set_num_threads(int(num_threads))
     try:
         lefts, rights, depths, occs = _render_frames(renderer, poses, f, B, noise_std, noise_gen, antialias,
-                                                     show_progress)
+                                                     show_progress, cameras)
     finally:
         torch.set_num_threads(threads)
     depth = torch.stack(depths)[:, None]
@@ -711,4 +904,5 @@ def render_sequence(
         K=torch.as_tensor(K, device=dev, dtype=dtype),
         baseline=B,
         fps=rig.fps,
+        exposure=cameras.exposure if cameras is not None else torch.ones(num_frames, 2, device=dev, dtype=dtype),
     )

@@ -19,6 +19,13 @@ def seq() -> StereoSequence:
     return render_sequence(num_frames=5, height=H, width=W, seed=3)
 
 
+@pytest.fixture(scope="module")
+def ideal_seq() -> StereoSequence:
+    # Identical noise-free cameras: for properties of the scene's shading that camera differences would mask
+    # (test_imaging checks the realistic cameras against their drawn gains).
+    return render_sequence(num_frames=5, height=H, width=W, seed=3, imaging="ideal")
+
+
 def _right_pose(pose: torch.Tensor, baseline: float) -> torch.Tensor:
     right = pose.clone()
     right[..., :3, 3] = pose[..., :3, 3] + baseline * pose[..., :3, 0]
@@ -128,8 +135,9 @@ def test_ground_truth_projects_to_right_image(seq: StereoSequence) -> None:
         torch.testing.assert_close(yr, ys, atol=1e-3, rtol=0)
 
 
-def test_matching_points_have_matching_intensity(seq: StereoSequence) -> None:
+def test_matching_points_have_matching_intensity(ideal_seq: StereoSequence) -> None:
     """Lambertian surfaces: left(x, y) == right(x - d, y) on non-occluded pixels (bilinear lookup)."""
+    seq = ideal_seq
     ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     xr = xs - seq.disparity[:, 0]
     grid = torch.stack([xr / (W - 1) * 2 - 1, (ys / (H - 1) * 2 - 1).expand_as(xr)], -1)
@@ -146,8 +154,10 @@ def test_matching_points_have_matching_intensity(seq: StereoSequence) -> None:
     assert (off - seq.left).abs()[ok].median() > 2 * diff.median()
 
 
-def test_occlusion_mask_flags_unmatched_pixels(seq: StereoSequence) -> None:
+@pytest.mark.parametrize("which", ["realistic", "ideal"])
+def test_occlusion_mask_flags_unmatched_pixels(which: str, seq: StereoSequence, ideal_seq: StereoSequence) -> None:
     """Occluded pixels are the ones whose depth disagrees with the right view's surface at (x - d, y)."""
+    seq = seq if which == "realistic" else ideal_seq
     # Pixels that leave the right image are occluded.
     xs = torch.arange(W, dtype=torch.float32)
     leaves = (xs - seq.disparity[:, 0]) < 0
@@ -159,13 +169,20 @@ def test_occlusion_mask_flags_unmatched_pixels(seq: StereoSequence) -> None:
     nearer_right = F.max_pool2d(F.pad(seq.disparity, (0, reach), value=0.0), (1, reach + 1), stride=1)
     inside = seq.occluded & ~leaves[:, None]
     assert inside.sum() > 0
-    assert (nearer_right[inside] > seq.disparity[inside] + 1e-3).all()
-    ys = torch.arange(H, dtype=torch.float32)[:, None].expand(H, W)
-    grid = torch.stack([(xs - seq.disparity[:, 0]) / (W - 1) * 2 - 1, (ys / (H - 1) * 2 - 1).expand(len(seq), H, W)],
-                       -1)
-    warped = F.grid_sample(seq.right, grid, mode="bilinear", align_corners=True, padding_mode="border")
-    diff = (warped - seq.left).abs()
-    assert diff[inside].median() > 3 * diff[~seq.occluded].median()
+    nearer = (nearer_right[inside] > seq.disparity[inside] + 1e-3).float().mean()
+    if which == "ideal":
+        assert nearer == 1.0
+        ys = torch.arange(H, dtype=torch.float32)[:, None].expand(H, W)
+        grid = torch.stack([(xs - seq.disparity[:, 0]) / (W - 1) * 2 - 1,
+                            (ys / (H - 1) * 2 - 1).expand(len(seq), H, W)], -1)
+        warped = F.grid_sample(seq.right, grid, mode="bilinear", align_corners=True, padding_mode="border")
+        diff = (warped - seq.left).abs()
+        # On identical noise-free cameras (realistic ones differ in gain and noise on visible pixels too).
+        assert diff[inside].median() > 3 * diff[~seq.occluded].median()
+    else:
+        # All but a few: a rail or pole thinner than a pixel can hide a point in the right view while falling
+        # between pixel centres of the left one.
+        assert nearer > 0.99
 
 
 def test_depth_is_consistent_over_time(seq: StereoSequence) -> None:

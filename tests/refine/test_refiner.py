@@ -13,10 +13,20 @@ from egorefine.refine import EgoMotionRefiner, RefinerState, refine_sequence
 
 SMALL = dict(max_disparity=24, max_features=150, min_tracks=60)
 
+# IDEAL marks the tests that check a mechanism of the loop (sub-pixel refinement, validity rules, crack filling,
+# local search, hole measurement) against bounds set on ideal renders; realistic imaging (the renderer's default)
+# is held to its own bounds in test_loop_on_realistic_imaging, and benchmarks/refine.py measures it in full.
+IDEAL = "ideal"
+
 
 @pytest.fixture(scope="module")
 def small_seq():
     return render_sequence(num_frames=7, height=120, width=160, seed=3)
+
+
+@pytest.fixture(scope="module")
+def ideal_seq():
+    return render_sequence(num_frames=7, height=120, width=160, seed=3, imaging=IDEAL)
 
 
 def _run(seq, refiner, frames=None, batch=1):
@@ -43,7 +53,8 @@ def test_api_contract_and_schedule(small_seq):
         assert o.motion.shape == (1, 4, 4) and o.motion_ok.all()
 
 
-def test_motion_follows_the_rig(small_seq):
+def test_motion_follows_the_rig(ideal_seq):
+    small_seq = ideal_seq
     outs, _ = _run(small_seq, EgoMotionRefiner(verify_every=3, fusion="kalman", **SMALL))
     motion = torch.cat([o.motion for o in outs[1:]])
     gt = small_seq.motions[1:]
@@ -144,7 +155,8 @@ def test_black_frame_falls_back_to_stereo_without_nan(small_seq):
         (dict(fusion="kalman", motion_method="robust", splat="soft"), 0.1, 0.07),
     ],
 )
-def test_refined_disparity_against_truth(small_seq, options, epe_bound, median_bound):
+def test_refined_disparity_against_truth(ideal_seq, options, epe_bound, median_bound):
+    small_seq = ideal_seq
     outs, _ = _run(small_seq, EgoMotionRefiner(verify_every=3, **SMALL, **options))
     d = torch.cat([o.disparity for o in outs])
     v = torch.cat([o.valid for o in outs])
@@ -162,7 +174,7 @@ def test_top_level_api_names():
 def test_adaptive_schedule_runs_stereo_when_coverage_drops():
     # Sideways motion brings new columns into view: the prediction for frame 1 covers ~95.6 % of the
     # image (frame 0's stereo covered ~96.8 %), so a 96 % coverage threshold must call stereo, 90 % must not.
-    seq = render_sequence(num_frames=2, height=120, width=160, motion="lateral", seed=3)
+    seq = render_sequence(num_frames=2, height=120, width=160, motion="lateral", seed=3, imaging=IDEAL)
     fixed, _ = _run(seq, EgoMotionRefiner(verify_every=100, **SMALL))
     strict, _ = _run(seq, EgoMotionRefiner(verify_every=100, adaptive=True, min_coverage=0.96, **SMALL))
     lenient, _ = _run(seq, EgoMotionRefiner(verify_every=100, adaptive=True, min_coverage=0.9, min_confidence=0.0,
@@ -190,7 +202,8 @@ def test_predictions_beyond_the_search_range_are_not_valid():
     # Moving forward, a near point's disparity grows (d' = d / q_z). A stereo outlier at 22 px is a point 0.36 m
     # away: one 0.1 m step later it predicts ~30 px, beyond the 24 px search range, where no stereo run can check
     # it, and its magnified footprint wins the z-buffer. Such predictions must not be valid.
-    seq = render_sequence(num_frames=4, height=120, width=160, scene="corridor", motion="forward", seed=3)
+    seq = render_sequence(num_frames=4, height=120, width=160, scene="corridor", motion="forward", seed=3,
+                          imaging=IDEAL)
     outs, _ = _run(seq, _OutlierOnFirstFrame(verify_every=100, **SMALL))
     assert bool((outs[0].valid & (outs[0].disparity == 22.0)).any())  # the outlier is in
     assert not any(o.stereo_ran for o in outs[1:])
@@ -207,7 +220,8 @@ def test_filling_cracks_adds_accurate_pixels():
     # what the splat tiles. Looking those holes up in the keyframe must make much more of the map valid, with
     # values as good, relative to their (large) disparity, as the splatted ones (measured: 0.81 -> 0.91
     # density; relative error 3.7 % on the added pixels, 7.9 % on the others).
-    seq = render_sequence(num_frames=7, height=120, width=160, preset="kitti", scene="street", motion="forward", seed=3)
+    seq = render_sequence(num_frames=7, height=120, width=160, preset="kitti", scene="street", motion="forward", seed=3,
+                          imaging=IDEAL)
     maps = {}
     for fill in (False, True):
         outs, _ = _run(seq, EgoMotionRefiner(verify_every=100, fill_cracks=fill, **SMALL))
@@ -228,7 +242,7 @@ def test_kalman_validity_rules_against_truth():
     # predictions stereo rejected must make the valid pixels more accurate (fewer off by > 0.5 px, lower EPE) at a
     # small cost in density, and no valid pixel that stereo rejected may carry more than the limit. Measured: bad-0.5
     # 0.0098 -> 0.0075, EPE 0.0648 -> 0.0627 px, density 0.997 -> 0.986.
-    seq = render_sequence(num_frames=6, height=120, width=160, scene="corridor", seed=5)
+    seq = render_sequence(num_frames=6, height=120, width=160, scene="corridor", seed=5, imaging=IDEAL)
     truth, mask = seq.disparity[1:], (seq.disparity[1:] > 0) & ~seq.occluded[1:]
     scores = {}
     for rules in (False, True):
@@ -259,8 +273,9 @@ def test_validity_rule_settings_are_checked():
 
 
 @pytest.mark.parametrize(("fusion", "window"), [("kalman", "fronto"), ("paper", "fronto"), ("kalman", "warped")])
-def test_local_search_corrects_a_wrong_keyframe(small_seq, fusion, window):
+def test_local_search_corrects_a_wrong_keyframe(ideal_seq, fusion, window):
     """A keyframe 1 px off is carried by prediction alone; the +-2 px residual search pulls it back."""
+    small_seq = ideal_seq
     K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
     truth = small_seq.disparity
     errors = {}
@@ -299,7 +314,7 @@ def test_local_search_needs_right_images_only_when_given(small_seq):
 def test_measure_holes_adds_accurate_values_where_the_view_changed():
     """A shaky rig sees new regions between verifications: the hole measurement fills them, accurately, and leaves
     the predicted pixels as they were."""
-    seq = render_sequence(num_frames=6, height=120, width=200, scene="hall", motion="shaky", seed=3)
+    seq = render_sequence(num_frames=6, height=120, width=200, scene="hall", motion="shaky", seed=3, imaging=IDEAL)
     options = dict(max_disparity=32, max_features=150, min_tracks=60, verify_every=10, fusion="kalman")
     outs = {}
     for name, extra in (("plain", {}), ("variance", {"hole_background_margin": None}), ("default", {})):
@@ -385,8 +400,14 @@ _NO_PASS_OVER_THE_MAP = {
 }
 
 
-@pytest.mark.parametrize("options", [{}, {"local_search": 2, "measure_holes": True}])
-def test_cpu_loop_runs_no_torch_pass_over_full_maps(small_seq, options):
+@pytest.mark.parametrize(
+    ("options", "seq_name"),
+    [({}, "small_seq"), ({"local_search": 2, "measure_holes": True}, "ideal_seq"),
+     pytest.param({"local_search": 2, "measure_holes": True}, "small_seq", marks=pytest.mark.xfail(
+         strict=True, reason="on realistic images a step of local search / hole measurement still runs torch ops "
+         "over full maps (where, mul, fill_, ...); issue 17"))],
+)
+def test_cpu_loop_runs_no_torch_pass_over_full_maps(request, options, seq_name):
     """On float32 CPU tensors every full-image step of a frame runs in compiled kernels or numpy: a torch op over a
     full map wakes torch's OpenMP threads, which then spin beside the next kernel (README, Method notes, "CPU
     speed"). A structural check, not a timing: it lists the aten ops that read a tensor of an image's size."""
@@ -395,6 +416,8 @@ def test_cpu_loop_runs_no_torch_pass_over_full_maps(small_seq, options):
     if not _jit.AVAILABLE:
         pytest.skip("numba not installed")
     from torch.profiler import ProfilerActivity, profile
+
+    small_seq = request.getfixturevalue(seq_name)
 
     K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
     refiner = EgoMotionRefiner(verify_every=3, fusion="kalman", **SMALL, **options)
@@ -452,3 +475,20 @@ def test_expected_positions_move_features_with_the_motion(small_seq, compiled, m
     assert torch.equal(moved, moves)
     torch.testing.assert_close(out[0][moves].double(), torch.stack([u, v], -1)[moves], atol=2e-3, rtol=0)
     assert torch.equal(out[0][~moves], kp[0][~moves])
+
+
+def test_loop_on_realistic_imaging():
+    """Sensor noise, camera differences, weak texture and thin structures (the renderer's default imaging)."""
+    seq = render_sequence(num_frames=7, height=120, width=160, seed=3)
+    outs, _ = _run(seq, EgoMotionRefiner(verify_every=5, fusion="kalman", **SMALL))
+    motion = torch.cat([o.motion for o in outs[1:]])
+    gt = seq.motions[1:]
+    # Bounds set from renders with other seeds (docs/rendering.md).
+    assert (translation_error(motion, gt) < 0.09 * gt[:, :3, 3].norm(dim=-1)).all()
+    assert (rotation_error_deg(motion, gt) < 0.15).all()
+    x = torch.arange(seq.left.shape[-1]).view(1, 1, -1)
+    for t, o in enumerate(outs):
+        scored = ~seq.occluded[t] & (x >= seq.disparity[t])
+        valid = o.valid[0] & scored
+        assert valid.sum() / scored.sum() > 0.48, t
+        assert (o.disparity[0] - seq.disparity[t]).abs()[valid].mean() < 0.5, t

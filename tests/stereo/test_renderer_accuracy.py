@@ -18,23 +18,36 @@ def _scored(seq) -> torch.Tensor:
     return (~seq.occluded) & torch.isfinite(seq.disparity) & (x >= seq.disparity)
 
 
+SGM = {"cost": "census", "aggregation": "sgm", "block_size": 5}
+
+
+# (imaging, matcher options, density above, EPE below, bad-2 below): ideal images test the sub-pixel fit on clean
+# data; the realistic bounds (noise, weak texture, camera differences) were set from renders with other seeds
+# (docs/rendering.md).
 @pytest.mark.slow
-@pytest.mark.parametrize("kw", [{}, {"cost": "census", "aggregation": "sgm", "block_size": 5}])
-def test_subpixel_accuracy_on_rendered_frames(kw):
-    seq = data.render_sequence(2, preset="paper", height=240, width=320, seed=0)
+@pytest.mark.parametrize(
+    ("imaging", "kw", "density", "max_epe", "max_bad2"),
+    [("ideal", {}, 0.9, 0.25, 0.01), ("ideal", SGM, 0.9, 0.25, 0.01),
+     ("realistic", {}, 0.5, 0.5, 0.06), ("realistic", SGM, 0.55, 1.1, 0.16)],
+)
+def test_subpixel_accuracy_on_rendered_frames(imaging, kw, density, max_epe, max_bad2):
+    seq = data.render_sequence(2, preset="paper", height=240, width=320, seed=0, imaging=imaging)
     max_d = int(seq.disparity.max().ceil()) + 4
     out = match_stereo(seq.left, seq.right, max_d, **kw)
     scored = _scored(seq)
     valid = out.valid & scored
-    assert valid.sum() / scored.sum() > 0.9
-    assert epe(out.disparity, seq.disparity, valid) < 0.25
-    assert bad_pixel_rate(out.disparity, seq.disparity, 2.0, valid) < 0.01
+    assert valid.sum() / scored.sum() > density
+    assert epe(out.disparity, seq.disparity, valid) < max_epe
+    assert bad_pixel_rate(out.disparity, seq.disparity, 2.0, valid) < max_bad2
 
 
-def test_subpixel_accuracy_on_a_small_rendered_frame():
-    seq = data.render_sequence(1, preset="paper", height=72, width=96, seed=3, antialias=False)
+# (imaging, density above, EPE below): ideal images test the sub-pixel fit on clean data; the realistic bounds
+# (noise, weak texture, camera differences) were set from renders with other seeds (docs/rendering.md).
+@pytest.mark.parametrize(("imaging", "density", "max_epe"), [("ideal", 0.9, 0.25), ("realistic", 0.65, 0.55)])
+def test_subpixel_accuracy_on_a_small_rendered_frame(imaging, density, max_epe):
+    seq = data.render_sequence(1, preset="paper", height=72, width=96, seed=3, antialias=False, imaging=imaging)
     out = match_stereo(seq.left, seq.right, 12, block_size=7)
     scored = _scored(seq)
     valid = out.valid & scored
-    assert valid.sum() / scored.sum() > 0.9
-    assert epe(out.disparity, seq.disparity, valid) < 0.25
+    assert valid.sum() / scored.sum() > density
+    assert epe(out.disparity, seq.disparity, valid) < max_epe
