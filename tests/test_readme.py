@@ -17,4 +17,4 @@ def test_readme_example_runs():
     lines = printed.getvalue().splitlines()
     assert len(lines) == 10 and lines[0].startswith("frame 0: stereo=True")
     epe = [float(re.search(r"EPE ([0-9.]+) px", line).group(1)) for line in lines]
-    assert max(epe) < 0.5
+    assert max(epe) < 1.0  # a sanity bound: realistic imaging at half size, not an accuracy target
