@@ -9,6 +9,7 @@ from .check import (
     check_same_device,
     check_shape,
 )
+from .dispatch import use_compiled
 from .errors import DeviceError, DTypeError, EgorefineError, ShapeError, StateError, ValueRangeError
 from .image import to_grey
 from .numerics import eps_like, safe_div
@@ -32,4 +33,5 @@ __all__ = [
     "progress",
     "safe_div",
     "to_grey",
+    "use_compiled",
 ]
