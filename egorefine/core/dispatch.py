@@ -8,10 +8,10 @@ only when all of these hold:
 * the switch :data:`ENABLED` is on (tests and benchmarks set it False to run every torch path);
 * numba can be imported (:data:`egorefine.core._jit.AVAILABLE`);
 * torch is not tracing or compiling the call: ``torch.compile`` / dynamo and ``torch.export``, ``torch.jit``
-  tracing or scripting, ``torch.fx`` symbolic tracing, or a Python dispatch mode (fake tensors, proxy tracing,
-  operator counters) that would not see a kernel's work;
-* every tensor is a plain CPU tensor (no tensor subclass, no functorch wrapper such as ``vmap``'s or
-  ``torch.func.grad``'s), and every floating-point one has the kernel's dtype;
+  tracing or scripting, ``torch.fx`` symbolic tracing, a functorch transform (``vmap``, ``torch.func.grad``), or a
+  Python dispatch mode (fake tensors, proxy tracing, operator counters) that would not see a kernel's work;
+* every tensor is a plain CPU tensor (no tensor subclass such as a fake tensor or an fx proxy), and every
+  floating-point one has the kernel's dtype;
 * no tensor needs a gradient: grad mode is off, or none of them requires grad. A kernel works on numpy views and
   gives outputs without a graph, so a caller that wants gradients always gets the torch path.
 
@@ -36,10 +36,9 @@ else:  # pragma: no cover - torch < 2.3
     _is_compiling = torch._dynamo.is_compiling
 
 try:
-    from torch.fx._symbolic_trace import is_fx_tracing as _is_fx_tracing
+    from torch.fx import _symbolic_trace as _fx  # its flag: set while fx traces (symbolic_trace, export)
 except ImportError:  # pragma: no cover - older torch
-    def _is_fx_tracing() -> bool:
-        return False
+    _fx = None
 
 try:
     from torch.utils._python_dispatch import _get_current_dispatch_mode
@@ -47,7 +46,8 @@ except ImportError:  # pragma: no cover - older torch
     def _get_current_dispatch_mode():
         return None
 
-_is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", lambda t: False)
+# the functorch transform level (vmap, torch.func.grad, jacrev): None outside every transform
+_functorch_level = getattr(getattr(torch._C, "_functorch", None), "maybe_current_level", lambda: None)
 _PLAIN = (torch.Tensor, torch.nn.Parameter)
 
 
@@ -55,8 +55,9 @@ def tracing() -> bool:
     """Whether torch is tracing or compiling the running code, so that only torch operations may run.
 
     True under ``torch.compile`` (dynamo, also behind ``torch.export``), ``torch.jit.trace`` /
-    ``torch.jit.script``, ``torch.fx.symbolic_trace`` and any active Python dispatch mode (fake tensors,
-    ``make_fx``'s proxy tracing, operator counters).
+    ``torch.jit.script``, ``torch.fx.symbolic_trace``, a functorch transform (``torch.func.vmap``, ``grad``,
+    ``jacrev``: their tensors are wrappers) and any active Python dispatch mode (fake tensors, ``make_fx``'s proxy
+    tracing, operator counters).
 
     Returns:
         True where a compiled kernel would be invisible to the tracer or fail on its tensors.
@@ -65,7 +66,8 @@ def tracing() -> bool:
         >>> tracing()
         False
     """
-    return bool(_is_compiling() or torch.jit.is_tracing() or torch.jit.is_scripting() or _is_fx_tracing()
+    return bool(_is_compiling() or torch.jit.is_tracing() or torch.jit.is_scripting()
+                or getattr(_fx, "_is_fx_tracing_flag", False) or _functorch_level() is not None
                 or _get_current_dispatch_mode() is not None)
 
 
@@ -121,7 +123,7 @@ def use_compiled(*tensors: torch.Tensor | None, dtype: torch.dtype | tuple[torch
     for t in tensors:
         if t is None:
             continue
-        if type(t) not in _PLAIN or t.device.type != "cpu" or _is_wrapped(t):
+        if type(t) not in _PLAIN or not t.is_cpu:
             return False
         if (t.is_floating_point() and t.dtype not in dtypes) or (grad and t.requires_grad):
             return False

@@ -72,7 +72,8 @@ def test_no_compiled_kernel_while_torch_traces():
     assert seen[1:] == [False, False]
     seen.clear()
     torch.func.vmap(f)(torch.rand(2, 3))  # functorch's batched wrappers
-    assert seen == [False]
+    torch.func.grad(lambda x: f(x).sum())(torch.rand(3))  # and its gradient-tracking ones
+    assert seen == [False, False]
 
     class Counting(torch.utils._python_dispatch.TorchDispatchMode):
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
