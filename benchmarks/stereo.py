@@ -31,7 +31,6 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import egorefine.stereo.matching as matching  # noqa: E402
 from benchmarks._common import (  # noqa: E402
     markdown_table,
     omp_setting,
@@ -40,6 +39,7 @@ from benchmarks._common import (  # noqa: E402
     update_readme,
     write_json,
 )
+from egorefine.core import dispatch  # noqa: E402
 from egorefine.stereo import match_stereo  # noqa: E402
 
 SIZES = [(640, 480), (1242, 375)]
@@ -123,13 +123,13 @@ def methods(left: np.ndarray, right: np.ndarray, num: int, torch_compile: bool =
 
     def ours(kw, compiled=True, fn=match_stereo):
         def run():
-            previous = matching._COMPILED_SAD
-            matching._COMPILED_SAD = compiled
+            previous = dispatch.ENABLED
+            dispatch.ENABLED = compiled
             try:
                 with torch.no_grad():
                     out = fn(tl, tr, num, **kw)
             finally:
-                matching._COMPILED_SAD = previous
+                dispatch.ENABLED = previous
             return out.disparity[0, 0].numpy(), out.valid[0, 0].numpy()
 
         return run
@@ -147,8 +147,8 @@ import json, sys, torch
 sys.path.insert(0, {root!r})
 torch.set_num_threads(2)
 from egorefine.stereo import match_stereo
-import egorefine.stereo.matching as matching
-matching._COMPILED_SAD = {compiled!r}
+from egorefine.core import dispatch
+dispatch.ENABLED = {compiled!r}
 def hwm():
     for line in open('/proc/self/status'):
         if line.startswith('VmHWM'):

@@ -12,6 +12,7 @@ from .check import (
     check_shape,
     check_variance,
 )
+from .dispatch import use_compiled
 from .errors import (
     DataError,
     DeviceError,
@@ -49,4 +50,5 @@ __all__ = [
     "progress",
     "safe_div",
     "to_grey",
+    "use_compiled",
 ]

@@ -14,11 +14,11 @@ well separated detections; a tracker calls it when the live count drops ("detect
 only when tracks thin out").
 
 For float32 CPU images with the Shi-Tomasi response (the refiner's case), the same steps run
-compiled (:mod:`egorefine.features._detect_numba`, numba), ~5x faster: the same selection rule and
-formulas, agreeing with this path to float rounding (the same keypoints but for a rare swap of two
-nearly equal candidates; positions within ~1e-3 px; exact ties go by pixel index instead of
-``torch.topk``'s order); ``_COMPILED = False`` switches it off. The torch path stays the reference
-for GPU tensors, autograd, float64 and Harris.
+compiled (:mod:`egorefine.features._detect_numba`, numba) where :func:`egorefine.core.use_compiled` allows
+it, ~5x faster: the same selection rule and formulas, agreeing with this path to float rounding (the same
+keypoints but for a rare swap of two nearly equal candidates; positions within ~1e-3 px; exact ties go by pixel
+index instead of ``torch.topk``'s order). The torch path stays the reference for GPU tensors, float64, Harris and
+tracing. Detection is a hard selection: keypoints and weights carry no gradient on either path.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from ..core import (
     check_shape,
     eps_like,
     to_grey,
+    use_compiled,
 )
 from . import _detect_numba
 
@@ -330,21 +331,13 @@ def _detect(
     return kp, weights
 
 
-# the compiled CPU form of the Shi-Tomasi detection (False: always the torch path, for comparisons)
-_COMPILED = True
-
-
 def _compiled_applies(image: torch.Tensor, response: str) -> bool:
-    """The compiled detection applies: numba present, Shi-Tomasi, a float32 CPU image of 4 x 4 pixels or more
-    (kornia's reflected 7x7 blur needs 4; smaller images keep the torch path's error)."""
-    return (
-        _COMPILED
-        and _detect_numba.AVAILABLE
-        and response == "gftt"
-        and image.device.type == "cpu"
-        and image.dtype == torch.float32
-        and min(image.shape[-2:]) >= 4
-    )
+    """The compiled detection applies: :func:`~egorefine.core.use_compiled` (float32 CPU, no tracing) and the
+    kernel's limits, the Shi-Tomasi response on an image of 4 x 4 pixels or more (kornia's reflected 7x7 blur needs
+    4; smaller images keep the torch path's error). :func:`detect` asks under ``no_grad``: a selection has no
+    gradient on either path."""
+    shi_tomasi, large_enough = response == "gftt", min(image.shape[-2:]) >= 4
+    return shi_tomasi and large_enough and use_compiled(image)
 
 
 class Detector(torch.nn.Module):
@@ -456,7 +449,7 @@ def replenish(
     cand = cand.to(keypoints.dtype)
     live = weights > 0
     with torch.no_grad():
-        if _COMPILED and _detect_numba.AVAILABLE and keypoints.device.type == "cpu" and cand.dtype == torch.float32:
+        if use_compiled(cand, cand_w, keypoints, live):
             # the same float32 distances without the (B, 2M, M) map
             usable = _detect_numba.usable_compiled(cand, cand_w, keypoints, live, min_distance)
         else:

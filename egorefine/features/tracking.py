@@ -47,11 +47,11 @@ to both calls that use that frame.
 respect to both images and the keypoints.
 
 For float32 CPU tensors that need no gradient, hard matching and ``cost="zncc"`` (the
-refiner's case), the same steps run compiled (:mod:`egorefine.features._track_numba`, numba):
-one loop over the live features per stage instead of a dozen small torch ops per level, about
-3x faster at a few hundred features. Its positions agree with this torch path (the reference,
-also for GPU tensors, autograd, ``soft=True`` and the other costs) to float32 rounding and its
-decisions are the same but for near-ties; ``_COMPILED = False`` switches it off.
+refiner's case), the same steps run compiled (:mod:`egorefine.features._track_numba`, numba;
+:func:`egorefine.core.use_compiled` decides): one loop over the live features per stage instead
+of a dozen small torch ops per level, about 3x faster at a few hundred features. Its positions
+agree with this torch path (the reference, also for GPU tensors, autograd, tracing, ``soft=True``
+and the other costs) to float32 rounding and its decisions are the same but for near-ties.
 """
 
 from __future__ import annotations
@@ -70,6 +70,7 @@ from ..core import (
     check_shape,
     eps_like,
     to_grey,
+    use_compiled,
 )
 from . import _track_numba
 
@@ -105,8 +106,7 @@ class TrackOutput(NamedTuple):
 # x_{l+1} = x_l / 2. This costs a fraction of kornia's pyrdown (5x5 blur and bilinear resize),
 # which matters here: the pyramid is a large part of the tracking time.
 def _pyrdown(x: torch.Tensor) -> torch.Tensor:
-    if (_COMPILED and _track_numba.AVAILABLE and x.device.type == "cpu" and x.dtype == torch.float32
-            and not (torch.is_grad_enabled() and x.requires_grad)):
+    if use_compiled(x):
         return _track_numba.pyrdown(x)  # the same operations compiled
     # The border row/column is repeated by concatenation (cheaper than F.pad's replicate mode).
     x = torch.cat([x[..., :1, :], x, x[..., -1:, :]], dim=-2)
@@ -787,23 +787,13 @@ def track(
     )
 
 
-# the compiled CPU form of the hard ZNCC track (False: always the torch path, for comparisons)
-_COMPILED = True
-
-
 def _compiled_applies(
     pyramids: list[torch.Tensor], tensors: tuple[torch.Tensor, ...], cost: str, soft: bool
 ) -> bool:
-    """The compiled track applies: numba present, hard ZNCC, float32 CPU tensors, no gradient wanted."""
-    every = [*pyramids, *tensors]
-    return (
-        _COMPILED
-        and _track_numba.AVAILABLE
-        and not soft
-        and cost == "zncc"
-        and all(t.device.type == "cpu" and t.dtype == torch.float32 for t in every)
-        and not (torch.is_grad_enabled() and any(t.requires_grad for t in every))
-    )
+    """The compiled track applies: :func:`~egorefine.core.use_compiled` on every tensor it reads and the kernel's
+    limit, hard matching with the ZNCC cost."""
+    hard_zncc = not soft and cost == "zncc"
+    return hard_zncc and use_compiled(*pyramids, *tensors)
 
 
 def _given_pyramid(

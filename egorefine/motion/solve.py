@@ -33,8 +33,8 @@ singular system (features on one 3-D line, all weights zero) or a non-finite sol
 give ``ok = False`` and the identity motion instead of NaN, without raising.
 
 On the CPU without gradient (float32/float64), every method runs as one compiled call per batch
-(:mod:`egorefine.motion._solve_numba`, the same steps in float64); ``solve._COMPILED_SOLVE = False``
-gives the torch path, which stays the reference and serves GPU tensors and autograd.
+(:mod:`egorefine.motion._solve_numba`, the same steps in float64) where :func:`egorefine.core.use_compiled`
+allows it; the torch path stays the reference and serves GPU tensors, autograd and tracing.
 
 The normal equations are Jacobi-scaled (unit diagonal) and damped by a small multiple of
 the identity (the dtype's epsilon) before a batched Cholesky factorisation, so every
@@ -61,6 +61,7 @@ from ..core import (
     check_same_device,
     check_shape,
     eps_like,
+    use_compiled,
 )
 from ..geometry import motion_to_twist, twist_to_motion
 from . import _lm_numba, _solve_numba
@@ -443,15 +444,8 @@ def _levenberg_marquardt(
     return motion, S, _jacobi_scaled(H)[0]
 
 
-# the compiled CPU form of the LM (False: always the torch path, for comparisons)
-_COMPILED_LM = True
-
-
-def _compiled_lm(*tensors: torch.Tensor) -> bool:
-    """The compiled LM applies: numba present, float32/64 CPU tensors, no gradient wanted."""
-    return (_COMPILED_LM and _lm_numba.AVAILABLE and all(t.device.type == "cpu" for t in tensors)
-            and tensors[0].dtype in (torch.float32, torch.float64)
-            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)))
+# the dtypes the compiled LM and solve accept (they compute in float64)
+_KERNEL_DTYPES = (torch.float32, torch.float64)
 
 
 def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor,
@@ -462,16 +456,6 @@ def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor
                                 scale)
 
 
-# the compiled CPU form of the whole solve (False: the torch path, with the compiled LM above, for comparisons)
-_COMPILED_SOLVE = True
-
-
-def _compiled_solve(*tensors: torch.Tensor | None) -> bool:
-    """The compiled solve applies: the compiled LM does (and is not switched off), numba present and every
-    float input float32/float64 on the CPU without gradient."""
-    given = [t for t in tensors if t is not None]
-    return (_COMPILED_SOLVE and _solve_numba.AVAILABLE and _compiled_lm(*given)
-            and all(t.dtype in (torch.float32, torch.float64) for t in given))
 
 
 # --------------------------------------------------------------------------- entry point
@@ -545,7 +529,8 @@ def solve_ego_motion(
     (torch.Size([2, 4, 4]), [True, True])
     """
     _check_inputs(points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev, values=False)
-    compiled = _compiled_solve(points_prev, points_next, disparity_prev, K, baseline, weights)
+    compiled = use_compiled(points_prev, points_next, disparity_prev, K, baseline, weights, valid_prev,
+                            dtype=_KERNEL_DTYPES)
     if not compiled:
         _check_values(points_prev, points_next, K, baseline, weights)
     check_choice(method, METHODS, "method")
@@ -615,7 +600,7 @@ def solve_ego_motion(
         lm = partial(_two_stage_lm, loss=loss, first=first, second=iterations - first, scale=scale)
         if _graphs.usable(*lm_inputs):  # CUDA inference: the ~300 small launches of the LM replayed as one graph
             motion, S, Hs = _graphs.replay(lm, ("lm", loss, first, iterations - first, scale), *lm_inputs)
-        elif _compiled_lm(*lm_inputs):  # CPU inference: the same LM compiled (numba)
+        elif use_compiled(*lm_inputs, dtype=_KERNEL_DTYPES):  # CPU inference: the same LM compiled (numba)
             motion, S, Hs = _lm_numba.two_stage_lm(*lm_inputs, loss=loss, first=first, second=iterations - first,
                                                    scale=scale)
         else:

@@ -36,13 +36,12 @@ from typing import NamedTuple
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
-from ..core import check_choice, check_finite, check_float, check_same_device, check_shape, check_variance
+from ..core import check_choice, check_finite, check_float, check_same_device, check_shape, check_variance, use_compiled
+from ..core.dispatch import needs_grad
 from ..core.errors import ValueRangeError
 from . import _fuse_numba, _predict_numba
-
-# set False to run the torch path on CPU too (tests compare the two)
-_COMPILED_KALMAN = True
 
 __all__ = ["Correction", "correct_disparity", "CorrectDisparity", "edge_variance", "QUANTISATION_VARIANCE"]
 
@@ -106,8 +105,9 @@ def edge_variance(
         base: ``(B, 1, H, W)`` px^2 the result is added to (a prediction's own variance), in the same pass.
 
     Returns:
-        ``(B, 1, H, W)`` px^2, >= 0, 0 where ``valid`` is False (``base +`` that with ``base``). Without gradient (a
-        discrete neighbourhood test).
+        ``(B, 1, H, W)`` px^2, >= 0, 0 where ``valid`` is False (``base +`` that with ``base``). With gradients
+        wanted the torch path carries the graph to the window's largest and smallest valid disparities and to
+        ``base``; which pixels those are is a hard decision (piecewise constant).
 
     >>> d = torch.tensor([[[[1.0, 1.0, 5.0, 5.0]]]])
     >>> edge_variance(d)
@@ -123,24 +123,23 @@ def edge_variance(
     if base is not None:
         check_shape(base, ["B", "1", "H", "W"], "base", dims)
         check_same_device(disparity, "disparity", base=base)
-    with torch.no_grad():
-        if valid is None:
-            valid = torch.ones_like(disparity, dtype=torch.bool)
-        valid = _as_bool(valid, disparity)
-        if _predict_numba.AVAILABLE and disparity.dtype == torch.float32 and disparity.device.type == "cpu":
-            # the same maxima and minima compiled (one pass instead of ~12 memory-bound torch ops); a base without
-            # gradient is added in the same pass
-            fold = base is not None and base.dtype == torch.float32 and not base.requires_grad
-            variance = _predict_numba.edge_variance(
-                disparity.detach()[:, 0].contiguous(), valid[:, 0].contiguous(), kernel_size // 2,
-                base[:, 0].contiguous() if fold else None,
-            )[:, None]
-            if base is None or fold:
-                return variance
-        else:
-            big = torch.finfo(disparity.dtype).max / 4
-            hi = _window_max(disparity.masked_fill(~valid, -big), kernel_size // 2)
-            lo = _window_max((-disparity).masked_fill(~valid, -big), kernel_size // 2)
+    valid = torch.ones_like(disparity, dtype=torch.bool) if valid is None else _as_bool(valid, disparity)
+    radius = kernel_size // 2
+    if use_compiled(disparity, valid, base):
+        # the same maxima and minima compiled (one pass instead of ~12 memory-bound torch ops), the base added in it
+        return _predict_numba.edge_variance(disparity[:, 0].contiguous(), valid[:, 0].contiguous(), radius,
+                                            None if base is None else base[:, 0].contiguous())[:, None]
+    big = torch.finfo(disparity.dtype).max / 4
+    if needs_grad(disparity, base):
+        # out of place, so that the graph reaches the window's largest and smallest disparity (max_pool2d's padding
+        # is -inf: the window's part inside the image, as _window_max)
+        hi = F.max_pool2d(disparity.masked_fill(~valid, -big), kernel_size, stride=1, padding=radius)
+        lo = F.max_pool2d((-disparity).masked_fill(~valid, -big), kernel_size, stride=1, padding=radius)
+        variance = ((hi + lo).clamp_min(0) * valid).square() * 0.25
+    else:
+        with torch.no_grad():
+            hi = _window_max(disparity.masked_fill(~valid, -big), radius)
+            lo = _window_max((-disparity).masked_fill(~valid, -big), radius)
             spread = (hi + lo).clamp_min_(0).mul_(valid)  # max - min; a valid pixel sees itself, so both are finite
             variance = spread.square_().mul_(0.25)
     return variance if base is None else base + variance
@@ -258,10 +257,9 @@ def correct_disparity(
         )
 
     e, s = predicted, measured.to(predicted.dtype)
-    needs_grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in (predicted, measured, predicted_variance, measured_variance))
-    if (fusion == "kalman" and _COMPILED_KALMAN and _fuse_numba.AVAILABLE and not needs_grad
-            and e.device.type == "cpu" and e.dtype == torch.float32):
+    carried = [t.to(e.dtype) for t in (predicted_variance, measured_variance, outlier_count) if t is not None]
+    kalman = fusion == "kalman"  # (the kernel implements the Kalman rule; the paper rule is a few torch ops)
+    if kalman and use_compiled(e, s, *carried, measured_valid, predicted_valid):
         # the same rule compiled: one pass instead of ~20 full-map operations; equal bit for bit (tests)
         P = torch.full_like(e, prior_variance) if predicted_variance is None else predicted_variance.to(e.dtype)
         R = torch.full_like(e, QUANTISATION_VARIANCE) if measured_variance is None else measured_variance.to(e.dtype)

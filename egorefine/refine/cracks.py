@@ -18,15 +18,22 @@ keyframe saw this pixel's surface at the place and depth the motion predicts. A 
 back at the background's depth it lands on the foreground that hid it, whose disparity does not match.
 
 Accepted pixels get the sampled value and the sampled variance carried like the splat's (``var_k h_z^2`` plus the
-process noise) and become valid; rejected ones stay holes. Float32 CPU maps take a compiled loop over the hole
-pixels (:mod:`egorefine.refine._predict_numba`) with the same formulas.
+process noise) and become valid; rejected ones stay holes. Float32 CPU maps without gradient take a compiled loop
+over the hole pixels (:mod:`egorefine.refine._predict_numba`, where :func:`egorefine.core.use_compiled` allows it)
+with the same formulas.
+
+Gradients (the torch path): an accepted pixel's value is the bilinear look-up moved forward, differentiable in the
+keyframe's disparity and variance and in the motion, intrinsics and baseline; the other pixels keep the
+prediction's values and their graph. Which pixels are holes, which four keyframe pixels a look-up blends and
+whether a pixel is accepted are hard decisions: piecewise constant, with no gradient of their own (a value jumps
+where an input crosses one of them).
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..core import check_shape
+from ..core import check_shape, use_compiled
 from . import _predict_numba
 from .predict import Prediction, _pixel_motion
 
@@ -65,7 +72,8 @@ def close_cracks(
 
     Returns:
         A :class:`~egorefine.refine.predict.Prediction` with the closed cracks valid (``hole`` still marks the
-        splat's holes). Without gradient: the look-up is a discrete decision on a prediction.
+        splat's holes). Gradients reach the inputs through the looked-up values; the choice of pixels and their
+        acceptance are piecewise constant (module docstring).
 
     >>> from egorefine.refine import predict_disparity
     >>> from egorefine.geometry import make_intrinsics
@@ -82,15 +90,16 @@ def close_cracks(
     check_shape(motion, ["B", "4", "4"], "motion", dims)
     B, _, H, W = key_disparity.shape
     maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
-    if (_predict_numba.AVAILABLE and key_disparity.device.type == "cpu" and maps[2].dtype == torch.bool
-            and all(t.dtype == torch.float32 for t in (key_disparity, key_variance, *maps[:2], maps[3]))):
+    key_ok = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
+    # key_T_t in pixel-homogeneous form (the splat's own back-projection): h = G (u, v, 1) + e d
+    _, _, G, e = _pixel_motion(motion, K, baseline)
+    bool_mask = maps[2].dtype == torch.bool  # (the kernel reads the prediction's mask as bool)
+    if bool_mask and use_compiled(*maps, key_disparity, key_variance, key_ok, G.to(torch.float32),
+                                  e.to(torch.float32)):
         # the same look-ups compiled (egorefine.refine._predict_numba); None: no hole
-        _, _, G, e = _pixel_motion(motion, K, baseline)
-        valid = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
         out = _predict_numba.close_cracks(
-            *(t.detach()[:, 0].contiguous() for t in maps), key_disparity.detach()[:, 0], key_variance.detach()[:, 0],
-            valid[:, 0], G.detach().to(torch.float32), e.detach().to(torch.float32), iterations, tolerance,
-            surface_tolerance, process_noise,
+            *(t[:, 0].contiguous() for t in maps), key_disparity[:, 0], key_variance[:, 0], key_ok[:, 0],
+            G.to(torch.float32), e.to(torch.float32), iterations, tolerance, surface_tolerance, process_noise,
         )
         if out is None:
             return prediction
@@ -98,57 +107,53 @@ def close_cracks(
         return prediction._replace(disparity=disparity, variance=variance, valid=valid, confidence=confidence)
     if bool(prediction.valid.all()):
         return prediction
-    with torch.no_grad():
-        idx = (~prediction.valid).view(-1).nonzero().squeeze(1)  # flat indices of the hole pixels
-        if idx.numel() == 0:
-            return prediction
-        dtype = key_disparity.dtype
-        b_idx, pix = idx.div(H * W, rounding_mode="floor"), idx.remainder(H * W)
-        ys, xs = pix.div(W, rounding_mode="floor").to(dtype), pix.remainder(W).to(dtype)
-        # key_T_t in pixel-homogeneous form (the splat's own back-projection): h = G (u, v, 1) + e d
-        _, _, G, e = _pixel_motion(motion, K, baseline)
-        M, m = G[b_idx], e[b_idx]  # (N, 3, 3), (N, 3): per point, a gather of 12 numbers
-        base = M[:, :, 0] * xs[:, None] + M[:, :, 1] * ys[:, None] + M[:, :, 2]  # (N, 3)
-        flat_d, flat_var = key_disparity.reshape(-1), key_variance.reshape(-1)
-        flat_ok = key_valid.reshape(-1)
-        offset = b_idx * (H * W)
+    idx = (~prediction.valid).view(-1).nonzero().squeeze(1)  # flat indices of the hole pixels
+    dtype = key_disparity.dtype
+    b_idx, pix = idx.div(H * W, rounding_mode="floor"), idx.remainder(H * W)
+    ys, xs = pix.div(W, rounding_mode="floor").to(dtype), pix.remainder(W).to(dtype)
+    M, m = G[b_idx], e[b_idx]  # (N, 3, 3), (N, 3): per point, a gather of 12 numbers
+    base = M[:, :, 0] * xs[:, None] + M[:, :, 1] * ys[:, None] + M[:, :, 2]  # (N, 3)
+    flat_d, flat_var = key_disparity.reshape(-1), key_variance.reshape(-1)
+    flat_ok = key_ok.reshape(-1)
+    offset = b_idx * (H * W)
 
-        def look_up(d: torch.Tensor, with_variance: bool):
-            """Keyframe sample at the back-projection of disparity ``d``: (value, variance, ok, h_z)."""
-            h = torch.addcmul(base, m, d[:, None])
-            hz = h[:, 2].clamp_min(_MIN_DEPTH_RATIO)
-            sx, sy = h[:, 0] / hz, h[:, 1] / hz
-            inside = (h[:, 2] > _MIN_DEPTH_RATIO) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
-            x0 = sx.clamp(0, W - 1).floor_().clamp_max_(W - 2)
-            y0 = sy.clamp(0, H - 1).floor_().clamp_max_(H - 2)
-            ax, ay = (sx - x0).clamp_(0, 1), (sy - y0).clamp_(0, 1)
-            first = offset + y0.long() * W + x0.long()
-            corners = torch.stack([first, first + 1, first + W, first + W + 1])  # (4, N)
-            vals = flat_d.take(corners)
-            ok = inside & flat_ok.take(corners).all(0) & ((vals.amax(0) - vals.amin(0)) <= surface_tolerance)
-            w = torch.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay])  # (4, N)
-            var = (w * flat_var.take(corners)).sum(0) if with_variance else None
-            return (w * vals).sum(0), var, ok, hz
+    def look_up(d: torch.Tensor, with_variance: bool):
+        """Keyframe sample at the back-projection of disparity ``d``: (value, variance, ok, h_z)."""
+        h = torch.addcmul(base, m, d[:, None])
+        hz = h[:, 2].clamp_min(_MIN_DEPTH_RATIO)
+        sx, sy = h[:, 0] / hz, h[:, 1] / hz
+        inside = (h[:, 2] > _MIN_DEPTH_RATIO) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
+        # the four pixels blended: a hard choice (no gradient); the bilinear weights within them are smooth
+        x0 = sx.detach().clamp(0, W - 1).floor().clamp_max(W - 2)
+        y0 = sy.detach().clamp(0, H - 1).floor().clamp_max(H - 2)
+        ax, ay = (sx - x0).clamp(0, 1), (sy - y0).clamp(0, 1)
+        first = offset + y0.long() * W + x0.long()
+        corners = torch.stack([first, first + 1, first + W, first + W + 1])  # (4, N)
+        vals = flat_d.take(corners)
+        ok = inside & flat_ok.take(corners).all(0) & ((vals.amax(0) - vals.amin(0)) <= surface_tolerance)
+        w = torch.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay])  # (4, N)
+        var = (w * flat_var.take(corners)).sum(0) if with_variance else None
+        return (w * vals).sum(0), var, ok, hz
 
-        d = prediction.disparity.reshape(-1)[idx]
-        iterations = max(1, int(iterations))
-        ok = torch.ones_like(d, dtype=torch.bool)
-        for i in range(iterations):
-            value, var, sample_ok, hz = look_up(d, with_variance=i == iterations - 1)
-            new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
-            step = (new - d).abs()
-            ok &= sample_ok
-            d = torch.where(sample_ok, new, d)
-        accept = ok & (step <= tolerance)
-        keep = accept.nonzero().squeeze(1)
-        at = idx[keep]
-        disparity = prediction.disparity.clone()
-        variance = prediction.variance.clone()
-        valid = prediction.valid.clone()
-        disparity.view(-1)[at] = d[keep]
-        variance.view(-1)[at] = var[keep] * hz[keep].square() + process_noise
-        valid.view(-1)[at] = True
-        confidence = torch.where(valid, 1.0 / (1.0 + variance), torch.zeros_like(variance))
+    d = prediction.disparity.reshape(-1)[idx]
+    iterations = max(1, int(iterations))
+    ok = torch.ones_like(d, dtype=torch.bool)
+    for i in range(iterations):
+        value, var, sample_ok, hz = look_up(d, with_variance=i == iterations - 1)
+        new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
+        step = (new - d).abs()
+        ok = ok & sample_ok
+        d = torch.where(sample_ok, new, d)
+    accept = ok & (step <= tolerance)
+    keep = accept.nonzero().squeeze(1)
+    at = (idx[keep],)
+    # out of place: the accepted values replace the holes' and the graph reaches both
+    disparity = prediction.disparity.reshape(-1).index_put(at, d[keep]).view_as(prediction.disparity)
+    variance = prediction.variance.reshape(-1).index_put(at, var[keep] * hz[keep].square() + process_noise)
+    variance = variance.view_as(prediction.variance)
+    valid = prediction.valid.reshape(-1).index_put(at, torch.ones_like(keep, dtype=torch.bool))
+    valid = valid.view_as(prediction.valid)
+    confidence = torch.where(valid, 1.0 / (1.0 + variance), torch.zeros_like(variance))
     return prediction._replace(disparity=disparity, variance=variance, valid=valid, confidence=confidence)
 
 
@@ -167,22 +172,24 @@ def finish_prediction(
     """The refiner's step after the splat: :func:`close_cracks` (when ``fill_cracks``), then predicted values outside
     ``valid_range = [low, high)`` made not valid, with confidence 0 (the next stereo run could not verify them).
 
-    ``prediction`` must be the caller's own, fresh from :func:`~egorefine.refine.predict_disparity`: float32 CPU
-    maps without gradient are changed in place, in one compiled pass (no copies of the maps, no full-map torch op);
-    other maps go through :func:`close_cracks` and torch.
+    ``prediction`` must be the caller's own, fresh from :func:`~egorefine.refine.predict_disparity`: where
+    :func:`egorefine.core.use_compiled` allows it (float32 CPU maps, no gradient wanted) they are changed in place,
+    in one compiled pass (no copies of the maps, no full-map torch op); otherwise they go through
+    :func:`close_cracks` and torch, out of place, and the outputs carry the graph (the range test is a hard
+    decision: piecewise constant).
     """
     low, high = valid_range
     maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
-    if (_predict_numba.AVAILABLE and key_disparity.device.type == "cpu" and maps[2].dtype == torch.bool
-            and not any(t.requires_grad for t in maps)
-            and all(t.dtype == torch.float32 and t.is_contiguous() for t in (key_disparity, key_variance, *maps[:2],
-                                                                             maps[3]))):
-        _, _, G, e = _pixel_motion(motion, K, baseline)
-        valid = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
+    key_ok = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
+    _, _, G, e = _pixel_motion(motion, K, baseline)
+    # the kernel writes the maps in place: they must be contiguous, the mask bool
+    writable = maps[2].dtype == torch.bool and all(t.is_contiguous() for t in maps)
+    if writable and use_compiled(*maps, key_disparity, key_variance, key_ok, G.to(torch.float32),
+                                 e.to(torch.float32)):
         _predict_numba.finish_prediction(
-            *(t[:, 0] for t in maps), key_disparity.detach()[:, 0], key_variance.detach()[:, 0], valid[:, 0],
-            G.detach().to(torch.float32), e.detach().to(torch.float32), _ITERATIONS if fill_cracks else 0, _TOLERANCE,
-            _SURFACE_TOLERANCE, process_noise, low, high,
+            *(t[:, 0] for t in maps), key_disparity[:, 0], key_variance[:, 0], key_ok[:, 0], G.to(torch.float32),
+            e.to(torch.float32), _ITERATIONS if fill_cracks else 0, _TOLERANCE, _SURFACE_TOLERANCE, process_noise,
+            low, high,
         )
         return prediction
     if fill_cracks:

@@ -50,7 +50,8 @@ steps (tests/refine/test_predict.py measures it); one step is the default. Refin
 disparity only; the variance stays the carried one.
 
 Speed: for float32 CPU maps that need no gradient, hard mode with refinement runs compiled
-(:mod:`egorefine.refine._predict_numba`, numba: the same formulas in three loops, decisions equal to
+(:mod:`egorefine.refine._predict_numba`, numba, where :func:`egorefine.core.use_compiled` allows it: the same
+formulas in three loops, decisions equal to
 this path's, values to rounding; about 0.35x this path's time at 640x480 on two threads). The torch
 path below is the reference for GPU tensors, float64 and autograd. It is written in pixel-homogeneous
 coordinates (one affine map per component over the grid), out-of-image points land in the margin of
@@ -87,7 +88,9 @@ from ..core import (
     check_shape,
     check_variance,
     eps_like,
+    use_compiled,
 )
+from ..core.dispatch import needs_grad
 from ..core.errors import ValueRangeError
 from . import _predict_numba
 
@@ -340,11 +343,12 @@ def predict_disparity(
         raise ValueRangeError(f"refine_iterations: must be >= 0, got {refine_iterations}")
 
     # Without gradients (the refiner's loop) intermediate maps are updated in place; with them, out of place.
-    fast = not (
-        torch.is_grad_enabled()
-        and any(t is not None and t.requires_grad for t in (disparity, motion, K, baseline, variance))
-    )
-    if not (mode == "hard" and refine_iterations > 0 and _compiled(fast, disparity)):
+    fast = not needs_grad(disparity, motion, K, baseline, variance)
+    # the compiled splat implements hard mode with refinement; it reads every input in the disparity's dtype
+    hard_refined = mode == "hard" and refine_iterations > 0
+    compiled = hard_refined and use_compiled(
+        disparity, valid, *(t.to(disparity.dtype) for t in (variance, motion, K, baseline) if t is not None))
+    if not compiled:
         check_finite(disparity, "disparity")  # (the compiled path tests it inside its kernels)
     settings = (mode, process_noise, hole_variance, fill_holes, temperature, refine_iterations, surface_tolerance)
     if fast and _graphs.usable(disparity, motion, K, baseline):
@@ -369,6 +373,7 @@ def predict_disparity(
             refine_iterations,
             surface_tolerance,
             fast,
+            compiled,
         )
 
 
@@ -397,8 +402,10 @@ def _predict(
     refine_iterations: int,
     surface_tolerance: float,
     fast: bool,
+    compiled: bool = False,
 ) -> Prediction:
-    """The body of :func:`predict_disparity` (inputs checked); ``fast``: no gradient needed, work in place."""
+    """The body of :func:`predict_disparity` (inputs checked); ``fast``: no gradient needed, work in place;
+    ``compiled``: run the compiled splat (:func:`~egorefine.core.use_compiled` allowed it)."""
     B, _, H, W = disparity.shape
     dtype, device = disparity.dtype, disparity.device
     motion, K, baseline = motion.to(dtype), K.to(dtype), baseline.to(dtype)
@@ -406,7 +413,7 @@ def _predict(
     var = None if variance is None else variance[:, 0].to(dtype)
     # Pixel-homogeneous form (see _pixel_motion); the grid enters as a column and a row vector.
     A, a, G, e = _pixel_motion(motion, K, baseline)
-    if mode == "hard" and refine_iterations > 0 and _compiled(fast, d):
+    if compiled:
         # the same steps compiled (egorefine.refine._predict_numba): float32 CPU inference
         out = _predict_numba.hard_splat(
             d.contiguous(), None if var is None else var.contiguous(),
@@ -446,13 +453,9 @@ def _predict(
         est = (est * landed.to(dtype))[:, None]
     carried = (est_var + process_noise) if est_var is not None else torch.full_like(est, process_noise)[:, 0]
     out_var = carried[:, None].masked_fill(hole4, hole_variance)
-    confidence = (1.0 + out_var).reciprocal().masked_fill_(hole4, 0.0)
+    confidence = (1.0 + out_var).reciprocal()  # (in place only without autograd: reciprocal keeps its output)
+    confidence = confidence.masked_fill_(hole4, 0.0) if fast else confidence.masked_fill(hole4, 0.0)
     return Prediction(est, out_var, hole4, ~hole4, confidence)
-
-
-def _compiled(fast: bool, like: torch.Tensor) -> bool:
-    """Whether the compiled CPU path applies: numba installed, no gradient needed, float32 CPU maps."""
-    return _predict_numba.AVAILABLE and fast and like.dtype == torch.float32 and like.device.type == "cpu"
 
 
 def _per_batch(x: torch.Tensor) -> torch.Tensor:

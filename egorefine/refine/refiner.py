@@ -37,6 +37,7 @@ from ..core import (
     check_shape,
     progress,
     to_grey,
+    use_compiled,
 )
 from ..features import build_pyramid, replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
@@ -143,8 +144,7 @@ class RefinerOutput(NamedTuple):
 def _confidence(valid: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
     """``1 / (1 + variance)`` on valid pixels, 0 elsewhere: the same meaning on every frame (as in predict).
     Float32 CPU maps without gradient take a compiled pass (no full-map torch op to wake torch's OpenMP threads)."""
-    if (_fuse_numba.AVAILABLE and variance.dtype == torch.float32 and variance.device.type == "cpu"
-            and valid.dtype == torch.bool and not (torch.is_grad_enabled() and variance.requires_grad)):
+    if valid.dtype == torch.bool and use_compiled(valid, variance):  # (the kernel reads a bool mask)
         return _fuse_numba.confidence(valid, variance)
     return valid.to(variance.dtype) / (1.0 + variance)
 
@@ -171,9 +171,8 @@ def _take_hole_measurements(
     variance and a zero outlier count. Float32 CPU maps without gradient take one compiled pass
     (:func:`egorefine.refine._fuse_numba.take_measurements`), others the same rule in torch.
     """
-    maps = (disparity, variance, outliers, meas.disparity, meas.variance, pred.disparity)
-    if (_fuse_numba.AVAILABLE and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in maps)
-            and not (torch.is_grad_enabled() and any(t.requires_grad for t in maps))):
+    if use_compiled(disparity, variance, valid, outliers, meas.disparity, meas.variance, meas.valid, pred.disparity,
+                    pred.hole):
         return _fuse_numba.take_measurements(disparity, variance, valid, outliers, meas.disparity, meas.variance,
                                              meas.valid, pred.disparity, pred.hole, max_variance, background_margin)
     take = meas.variance <= max_variance
@@ -216,9 +215,7 @@ def _expected_positions(
     """Where ``keypoints`` land if the rig repeats ``motion`` (constant velocity): centres the track search.
     Points whose four neighbouring pixels are not all valid keep their position."""
     H, W = disparity.shape[-2:]
-    tensors = (keypoints, disparity, motion, K, baseline)
-    if (_predict_numba.AVAILABLE and all(t.dtype == torch.float32 and t.device.type == "cpu" for t in tensors)
-            and valid.dtype == torch.bool and not any(t.requires_grad for t in tensors)):
+    if valid.dtype == torch.bool and use_compiled(keypoints, disparity, valid, motion, K, baseline):  # (a bool mask)
         # compiled: some forty torch ops on a few hundred points are ~0.45 ms of launch overhead per frame
         return _predict_numba.expected_positions(keypoints.contiguous(), disparity[:, 0].contiguous(),
                                                  valid[:, 0].contiguous(), motion.contiguous(), K.contiguous(),

@@ -29,7 +29,9 @@ from ..core import (
     check_same_device,
     check_shape,
     to_grey,
+    use_compiled,
 )
+from ..core.dispatch import needs_grad
 from . import _sad_numba, _sgm_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
@@ -48,8 +50,6 @@ _TEMPERATURES = {"sad": 0.008, "zncc": 0.05, "census": 0.2}
 COST_FLOORS = {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}
 # the exact int16 path of the default SAD matcher (False: always the float path, for comparisons)
 _INTEGER_PATH = True
-# its compiled CPU form (False: the torch integer path, for comparisons; both give the same outputs)
-_COMPILED_SAD = True
 _STRIP_ELEMENTS = 1 << 19  # ~2 MB of float32 per strip volume: stays in cache
 # on a GPU launches, not caches, set the time: strips of up to 256 MB (H100, 640x480 / 64: ZNCC 4.0 ms against
 # 47.8 with the CPU size, census 5.5 against 51.3)
@@ -64,7 +64,8 @@ class StereoOutput(NamedTuple):
     Attributes:
         disparity: ``(B, 1, H, W)`` left-view disparity in px, 0 where invalid.
         valid: ``(B, 1, H, W)`` bool, the pixels that passed every check.
-        variance: ``(B, 1, H, W)`` measurement variance in px^2 (>= 1/12; INVALID_VARIANCE where invalid).
+        variance: ``(B, 1, H, W)`` measurement variance in px^2 (>= 1/12; INVALID_VARIANCE where invalid), a
+            heuristic of the detached costs: no gradient.
     """
 
     disparity: torch.Tensor
@@ -239,15 +240,17 @@ def _integer_scale(cost: str, aggregation: str, prefilter: bool, block_size: int
     return int_scale(block_size, prefilter_cap)
 
 
-def _compiled_sad(grey: torch.Tensor) -> bool:
-    """The int16 SAD path runs compiled (:mod:`egorefine.stereo._sad_numba`) for these images."""
-    return _COMPILED_SAD and _sad_numba.AVAILABLE and grey.device.type == "cpu" and grey.dtype == torch.float32
+def _compiled_sad(grey_l: torch.Tensor, grey_r: torch.Tensor) -> bool:
+    """The int16 SAD path (taken only without gradient) runs compiled (:mod:`egorefine.stereo._sad_numba`) for
+    these images: :func:`~egorefine.core.use_compiled`."""
+    return use_compiled(grey_l, grey_r)
 
 
-def _use_numba_sgm(grey: torch.Tensor, cost: str, num: int, needs_grad: bool) -> bool:
-    """The compiled census + SGM path applies: numba present, float32 CPU tensors, no gradient, >= 2 candidates."""
-    return (_sgm_numba.AVAILABLE and cost == "census" and not needs_grad and grey.device.type == "cpu"
-            and grey.dtype == torch.float32 and num >= 2)
+def _use_numba_sgm(grey_l: torch.Tensor, grey_r: torch.Tensor, cost: str, num: int, differentiable: bool) -> bool:
+    """The compiled census + SGM path applies: :func:`~egorefine.core.use_compiled` and the kernel's limits (the
+    census cost, the hard winner, at least 2 candidates)."""
+    census_hard = cost == "census" and not differentiable and num >= 2
+    return census_hard and use_compiled(grey_l, grey_r)
 
 
 def match_stereo(
@@ -342,12 +345,12 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
         "scale": float(block_size * block_size),
         "min_disparity": min_disparity,
     }
-    needs_grad = torch.is_grad_enabled() and (left.requires_grad or right.requires_grad)
-    scale = _integer_scale(cost, aggregation, prefilter, block_size, prefilter_cap, differentiable or needs_grad, num)
+    grad = needs_grad(left, right)
+    scale = _integer_scale(cost, aggregation, prefilter, block_size, prefilter_cap, differentiable or grad, num)
     if scale:
         # exact int16 fast path (the decisions of the float path below, without its float rounding;
         # a right-view tie within lr_threshold of the left winner passes the left-right check)
-        if _compiled_sad(grey_l):
+        if _compiled_sad(grey_l, grey_r):
             return StereoOutput(*_sad_numba.match_sad_compiled(grey_l, grey_r, max_disparity, min_disparity,
                                                                block_size, prefilter_cap, scale,
                                                                {**opts, "texture_threshold": texture_threshold}))
@@ -364,7 +367,7 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
         p1, p2 = _SGM_PENALTIES[cost]
         p1 = (p1 if sgm_p1 is None else sgm_p1) * opts["scale"]
         p2 = (p2 if sgm_p2 is None else sgm_p2) * opts["scale"]
-    if aggregation == "sgm" and _use_numba_sgm(grey_l, cost, num, differentiable or needs_grad):
+    if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
         # CPU inference: census, SGM and selection compiled (the same float32 results as below)
         parts.append(_sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size,
                                                   census_window, p1, p2, sgm_paths, opts)[:3])

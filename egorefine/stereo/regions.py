@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ..core import ValueRangeError, check_shape, to_grey
+from ..core.dispatch import needs_grad
 from . import _sad_numba, matching
 from .matching import COST_FLOORS, INVALID_VARIANCE, StereoOutput, match_stereo
 
@@ -180,12 +181,12 @@ def match_stereo_regions(
                                 torch.from_numpy(np.full(grey_l.shape, INVALID_VARIANCE, dtype)))
         return StereoOutput(torch.zeros_like(grey_l), torch.zeros_like(grey_l, dtype=torch.bool),
                             torch.full_like(grey_l, INVALID_VARIANCE))
-    needs_grad = torch.is_grad_enabled() and (grey_l.requires_grad or grey_r.requires_grad)
     scale = matching._integer_scale(settings["cost"], settings["aggregation"], settings["prefilter"],
                                     settings["block_size"], settings["prefilter_cap"],
-                                    settings["differentiable"] or needs_grad, max_disparity - settings["min_disparity"])
+                                    settings["differentiable"] or needs_grad(grey_l, grey_r),
+                                    max_disparity - settings["min_disparity"])
     # match_stereo would run the compiled SAD kernel: on windows here (the speckle filter needs whole regions)
-    if scale and matching._compiled_sad(grey_l) and not settings["speckle_size"]:
+    if scale and matching._compiled_sad(grey_l, grey_r) and not settings["speckle_size"]:
         # an item whose windows would cost more than full_fraction of the frame is matched whole
         work = [int(_costs(np.array(item, dtype=np.int64).reshape(-1, 4), W, int(margin), extra, 0).sum())
                 for item in boxes]

@@ -30,9 +30,10 @@ The work is ``2 radius + 1`` cost planes instead of ``max_disparity - min_dispar
 each disparity over the runs of pixels that need it). Pixels within ``block_size // 2`` of the image border, pixels
 whose band leaves the right image, and pixels where ``prior_valid`` is False are not valid.
 
-The torch code below is the reference (GPU, float64); float32 CPU tensors without gradient run the same
-formulas compiled (:mod:`egorefine.stereo._residual_numba`); the two agree to float32 rounding (the
-window sums are added in a different order, so a near-tie may be decided differently).
+The torch code below is the reference (GPU, float64, autograd, tracing); float32 CPU tensors without gradient run
+the same formulas compiled (:mod:`egorefine.stereo._residual_numba`, where :func:`egorefine.core.use_compiled`
+allows it); the two agree to float32 rounding (the window sums are added in a different order, so a near-tie may be
+decided differently).
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from ..core import (
     check_same_device,
     check_shape,
     to_grey,
+    use_compiled,
 )
 from . import _residual_numba
 from .cost import prefilter_xsobel
@@ -56,8 +58,6 @@ from .matching import COST_FLOORS, StereoOutput
 __all__ = ["match_residual"]
 
 _COST_FLOOR = COST_FLOORS["sad"]  # the matcher's variance model, SAD cost
-# set False to run the torch path on CPU too (tests compare the two)
-_COMPILED = True
 
 
 def match_residual(
@@ -130,9 +130,7 @@ def match_residual(
     ok = torch.ones_like(prior, dtype=torch.bool) if prior_valid is None else prior_valid.bool()
     opts = (int(radius), int(block_size), subpixel_fit == "parabola", float(uniqueness_ratio),
             float(texture_threshold))
-    no_grad = not (torch.is_grad_enabled() and (left.requires_grad or right.requires_grad or prior.requires_grad))
-    if (_COMPILED and _residual_numba.AVAILABLE and no_grad and left.device.type == "cpu"
-            and left.dtype == torch.float32):
+    if use_compiled(grey_l, grey_r, prior, ok):
         return StereoOutput(*_residual_numba.match_residual(grey_l, grey_r, prior, ok, *opts, cost_floor=_COST_FLOOR,
                                                             prefilter_cap=float(prefilter_cap), window=window))
     lp = prefilter_xsobel(grey_l, prefilter_cap)

@@ -16,14 +16,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core import DTypeError, ValueRangeError, check_shape
+from ..core import DTypeError, ValueRangeError, check_shape, use_compiled
 from ..core._jit import AVAILABLE
 from ..core._jit import jit as _jit
 
 __all__ = ["remove_speckles"]
-
-_COMPILED = True  # False: always the torch reference (for comparisons)
-
 
 if AVAILABLE:
 
@@ -99,13 +96,6 @@ def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: in
     return valid & ~small.view(b, 1, h, w)
 
 
-def _use_compiled(disp: torch.Tensor) -> bool:
-    """The numba flood applies: float32 / float64 CPU tensors, not traced or compiled by torch (the filter only
-    reads the detached disparity, so a gradient elsewhere does not matter)."""
-    return (_COMPILED and AVAILABLE and disp.device.type == "cpu" and disp.dtype in (torch.float32, torch.float64)
-            and not torch.jit.is_tracing() and not torch.compiler.is_compiling())
-
-
 def remove_speckles(disparity: torch.Tensor, valid: torch.Tensor, max_size: int = 100,
                     max_diff: float = 1.0) -> torch.Tensor:
     """Validity without the small regions of similar disparity (speckles).
@@ -137,8 +127,8 @@ def remove_speckles(disparity: torch.Tensor, valid: torch.Tensor, max_size: int 
         raise ValueRangeError(f"max_diff: expected >= 0, got {max_diff}")
     if max_size == 0:
         return valid
-    disp = disparity.detach()
-    if _use_compiled(disp):
+    disp = disparity.detach()  # the filter reads values only: a gradient elsewhere does not matter
+    if use_compiled(disp, valid, dtype=(torch.float32, torch.float64)):
         out = np.zeros(valid.shape[:1] + valid.shape[2:], np.bool_)
         _flood(np.ascontiguousarray(disp[:, 0].numpy()), np.ascontiguousarray(valid[:, 0].numpy()), max_size,
                np.array(max_diff, dtype=disp.numpy().dtype)[()], out)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from egorefine.core import ShapeError, ValueRangeError
+from egorefine.core import ShapeError, ValueRangeError, dispatch
 from egorefine.data import render_sequence
 from egorefine.features import _detect_numba as dn
 from egorefine.features import detect, detection, replenish
@@ -26,9 +26,9 @@ POSITION = 2e-3  # px: the most two refined positions of the same corner may dif
 
 def _both(fn, monkeypatch, *args, **kwargs):
     """``fn`` on the torch path, then on the compiled path."""
-    monkeypatch.setattr(detection, "_COMPILED", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     ref = fn(*args, **kwargs)
-    monkeypatch.setattr(detection, "_COMPILED", True)
+    monkeypatch.setattr(dispatch, "ENABLED", True)
     return ref, fn(*args, **kwargs)
 
 
@@ -136,7 +136,7 @@ def test_too_small_image_is_refused_on_both_paths(monkeypatch):
     img = torch.rand(1, 1, 3, 8)
     with pytest.raises(ShapeError, match="image: expected at least 4 px per side"):
         detect(img)
-    monkeypatch.setattr(detection, "_COMPILED", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     with pytest.raises(ShapeError, match="image: expected at least 4 px per side"):
         detect(img)
 
@@ -203,7 +203,7 @@ def test_non_finite_image_raises_on_both_paths(bad, monkeypatch):
     img[1, 0, 33, 7] = bad
     empty = torch.zeros(2, 20, 2), torch.zeros(2, 20)
     for compiled in (False, True):
-        monkeypatch.setattr(detection, "_COMPILED", compiled)
+        monkeypatch.setattr(dispatch, "ENABLED", compiled)
         with pytest.raises(ValueRangeError, match="image: contains NaN or Inf"):
             detect(img)
         with pytest.raises(ValueRangeError, match="image: contains NaN or Inf"):

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import egorefine.features.tracking as tracking
+from egorefine.core import dispatch
 from egorefine.data import render_sequence
 from egorefine.features import _track_numba, build_pyramid, detect, track
 
@@ -39,12 +40,12 @@ def _both(*args, **kw):
     """(torch path, compiled path) outputs of ``track(*args, **kw)`` without gradient."""
     outs = []
     for flag in (False, True):
-        tracking._COMPILED = flag
+        dispatch.ENABLED = flag
         try:
             with torch.no_grad():
                 outs.append(track(*args, **kw))
         finally:
-            tracking._COMPILED = True
+            dispatch.ENABLED = True
     return outs
 
 
@@ -145,7 +146,7 @@ def test_dispatch_condition(frames, monkeypatch):
             track(prev, nxt, kp8, w8, **kw)
         track(prev.double(), nxt.double(), kp8, w8)
     track(prev, nxt, kp8.clone().requires_grad_(), w8)  # a gradient is wanted
-    monkeypatch.setattr(tracking, "_COMPILED", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     with torch.no_grad():
         track(prev, nxt, kp8, w8)
     assert len(calls) == 1
@@ -157,7 +158,7 @@ def test_dispatch_condition(frames, monkeypatch):
 def test_compiled_pyramid_equals_torch_path(shape, monkeypatch):
     image = torch.rand(shape, generator=torch.Generator().manual_seed(1))
     fast = build_pyramid(image, 4)
-    monkeypatch.setattr(tracking, "_COMPILED", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     reference = build_pyramid(image, 4)
     assert [p.shape for p in fast] == [p.shape for p in reference]
     for a, b in zip(fast, reference, strict=True):

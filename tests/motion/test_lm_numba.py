@@ -7,8 +7,8 @@ import pytest
 import torch
 from motion_tracks import make_tracks
 
-import egorefine.motion.solve as solve
-from egorefine.motion import _lm_numba, solve_ego_motion
+from egorefine.core import _jit, dispatch
+from egorefine.motion import _lm_numba, _solve_numba, solve_ego_motion
 
 needs_numba = pytest.mark.skipif(not _lm_numba.AVAILABLE, reason="numba not installed")
 TWISTS = [[0.02, -0.01, 0.1, 0.005, -0.01, 0.003], [0.0, 0.03, 0.08, -0.004, 0.002, 0.01]]
@@ -17,9 +17,9 @@ TWISTS = [[0.02, -0.01, 0.1, 0.005, -0.01, 0.003], [0.0, 0.03, 0.08, -0.004, 0.0
 def _both(monkeypatch, tr, **kw):
     args = (tr.points_prev, tr.points_next, tr.disparity, tr.K, tr.baseline)
     compiled = solve_ego_motion(*args, **kw)
-    monkeypatch.setattr(solve, "_COMPILED_LM", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     reference = solve_ego_motion(*args, **kw)
-    monkeypatch.setattr(solve, "_COMPILED_LM", True)
+    monkeypatch.setattr(dispatch, "ENABLED", True)
     return compiled, reference
 
 
@@ -60,10 +60,11 @@ def test_torch_path_when_compiled_does_not_apply(monkeypatch):
     res = solve_ego_motion(tr.points_prev, points, tr.disparity, tr.K, tr.baseline)  # a gradient is wanted
     res.motion.sum().backward()
     assert torch.isfinite(points.grad).all()
-    monkeypatch.setattr(_lm_numba, "AVAILABLE", False)
+    monkeypatch.setattr(_jit, "AVAILABLE", False)
     solve_ego_motion(tr.points_prev, tr.points_next, tr.disparity, tr.K, tr.baseline)
-    monkeypatch.setattr(_lm_numba, "AVAILABLE", True)
-    monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)  # else the whole solve runs compiled (_solve_numba)
+    monkeypatch.setattr(_jit, "AVAILABLE", True)
+    # the torch solve (as after a bad value the compiled solve declines) with the compiled LM inside it
+    monkeypatch.setattr(_solve_numba, "solve_compiled", lambda *args, **kwargs: None)
     with pytest.raises(AssertionError, match="compiled LM"):
         solve_ego_motion(tr.points_prev, tr.points_next, tr.disparity, tr.K, tr.baseline)
 

@@ -9,7 +9,7 @@ import torch
 from motion_tracks import make_tracks
 
 import egorefine.motion.solve as solve
-from egorefine.core import DTypeError, ValueRangeError
+from egorefine.core import DTypeError, ValueRangeError, dispatch
 from egorefine.geometry import make_intrinsics, motion_to_twist, project, transform_points, twist_to_motion, unproject
 from egorefine.motion import _solve_numba, solve_ego_motion
 
@@ -27,9 +27,9 @@ def _both(monkeypatch, *args, **kw):
     monkeypatch.setattr(_solve_numba, "solve_compiled", lambda *a, **k: calls.append(1) or real(*a, **k))
     compiled = solve_ego_motion(*args, **kw)
     assert calls, "the compiled solve did not run"
-    monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     reference = solve_ego_motion(*args, **kw)
-    monkeypatch.setattr(solve, "_COMPILED_SOLVE", True)
+    monkeypatch.setattr(dispatch, "ENABLED", True)
     assert len(calls) == 1
     return compiled, reference
 
@@ -172,7 +172,7 @@ def test_degenerate_items_flag_not_nan(monkeypatch):
     empty = torch.zeros(2, 0, 2)
     for method in ("exact", "robust", "linear"):
         for compiled in (True, False):
-            monkeypatch.setattr(solve, "_COMPILED_SOLVE", compiled)
+            monkeypatch.setattr(dispatch, "ENABLED", compiled)
             e = solve_ego_motion(empty, empty, torch.zeros(2, 0), tr.K, tr.baseline, method=method)
             assert not e.ok.any() and torch.equal(e.motion, torch.eye(4).expand(2, 4, 4))
             assert e.weights.shape == (2, 0) and not e.twist.any() and not e.num_inliers.any()
@@ -213,12 +213,9 @@ def test_torch_path_where_compiled_does_not_apply(monkeypatch):
     assert torch.isfinite(points.grad).all()
     with pytest.raises(DTypeError, match="weights: expected float32 or float64"):  # refused at the door
         solve_ego_motion(*_args(tr), weights=torch.ones(1, 60, dtype=torch.float16))
-    monkeypatch.setattr(solve, "_COMPILED_SOLVE", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)  # the torch path with the torch LM, for comparisons
     solve_ego_motion(*_args(tr))
-    monkeypatch.setattr(solve, "_COMPILED_SOLVE", True)
-    monkeypatch.setattr(solve, "_COMPILED_LM", False)  # the torch path with the torch LM, for comparisons
-    solve_ego_motion(*_args(tr))
-    monkeypatch.setattr(solve, "_COMPILED_LM", True)
+    monkeypatch.setattr(dispatch, "ENABLED", True)
     with pytest.raises(AssertionError, match="compiled solve"):
         solve_ego_motion(*_args(tr))
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-import egorefine.refine.correct as correct
+from egorefine.core import dispatch
 from egorefine.refine import _fuse_numba, correct_disparity
 
 
@@ -23,7 +23,7 @@ def test_compiled_kalman_equals_torch(options, monkeypatch):
     count = (torch.rand(shape, generator=gen) * 3).floor()
     outs = []
     for compiled in (False, True):
-        monkeypatch.setattr(correct, "_COMPILED_KALMAN", compiled)
+        monkeypatch.setattr(dispatch, "ENABLED", compiled)
         outs.append(correct_disparity(e, s, m_ok, fusion="kalman", predicted_variance=P, measured_variance=R,
                                       predicted_valid=p_ok, outlier_count=count, **options))
     for ref, fast in zip(*outs, strict=True):

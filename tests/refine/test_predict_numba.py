@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from egorefine.core import _jit
 from egorefine.data import render_sequence
 from egorefine.refine import _predict_numba, close_cracks, predict_disparity
 from egorefine.refine.cracks import finish_prediction
@@ -29,9 +30,9 @@ def scene(request):
 
 def _both(monkeypatch, fn):
     compiled = fn()
-    monkeypatch.setattr(_predict_numba, "AVAILABLE", False)
+    monkeypatch.setattr(_jit, "AVAILABLE", False)
     reference = fn()
-    monkeypatch.setattr(_predict_numba, "AVAILABLE", True)
+    monkeypatch.setattr(_jit, "AVAILABLE", True)
     return compiled, reference
 
 
@@ -103,14 +104,14 @@ def test_torch_path_where_the_compiled_one_does_not_apply(scene, monkeypatch):
         raise AssertionError("the compiled path ran")
 
     monkeypatch.setattr(_predict_numba, "hard_splat", refuse)
-    monkeypatch.setattr(_predict_numba, "AVAILABLE", True)
+    monkeypatch.setattr(_jit, "AVAILABLE", True)
     predict_disparity(d.double(), motion, K, b)  # float64
     predict_disparity(d.clone().requires_grad_(True), motion, K, b)  # autograd
     predict_disparity(d, motion, K, b, mode="soft")  # soft splatting
     predict_disparity(d, motion, K, b, refine_iterations=0)  # the coverage splat
-    monkeypatch.setattr(_predict_numba, "AVAILABLE", False)
+    monkeypatch.setattr(_jit, "AVAILABLE", False)
     predict_disparity(d, motion, K, b)  # numba missing
-    monkeypatch.setattr(_predict_numba, "AVAILABLE", True)
+    monkeypatch.setattr(_jit, "AVAILABLE", True)
     with pytest.raises(AssertionError, match="compiled path"):
         predict_disparity(d, motion, K, b)
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import egorefine
-from egorefine.core import StateError, ValueRangeError
+from egorefine.core import StateError, ValueRangeError, _jit
 from egorefine.data import render_sequence
 from egorefine.metrics import rotation_error_deg, translation_error
 from egorefine.refine import EgoMotionRefiner, RefinerState, refine_sequence
@@ -346,13 +346,12 @@ def test_measure_holes_adds_accurate_values_where_the_view_changed():
 def test_hole_rule_takes_precise_or_background_side_values(compiled, monkeypatch):
     """Hand-made hole pixels: the variance rule, the background rule (splat holes only) and invalid matches; the
     compiled pass and the torch rule give the same maps."""
-    from egorefine.refine import _fuse_numba
     from egorefine.refine.predict import Prediction
     from egorefine.refine.refiner import _take_hole_measurements
     from egorefine.stereo import StereoOutput
 
     if not compiled:
-        monkeypatch.setattr(_fuse_numba, "AVAILABLE", False)
+        monkeypatch.setattr(_jit, "AVAILABLE", False)
     # pixels: precise; flat cost below the fill; flat cost above it; invalid match; within the margin; flat cost in
     # a closed crack (not a splat hole: its value is no background fill)
     fill = torch.full((1, 1, 1, 6), 10.0)
@@ -439,11 +438,10 @@ def test_expected_positions_move_features_with_the_motion(small_seq, compiled, m
     """The constant-velocity centres of the track search, against the same geometry in float64: bilinear
     disparity, Z = f B / d, the rigid motion, the projection; points on invalid or non-positive disparity or
     landing outside the image keep their position."""
-    from egorefine.refine import _predict_numba
     from egorefine.refine.refiner import _expected_positions
 
     if not compiled:
-        monkeypatch.setattr(_predict_numba, "AVAILABLE", False)
+        monkeypatch.setattr(_jit, "AVAILABLE", False)
     d = small_seq.disparity[:1].clone()
     H, W = d.shape[-2:]
     valid = d > 0

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import egorefine.stereo.matching as matching
-from egorefine.core import ShapeError, ValueRangeError
+from egorefine.core import ShapeError, ValueRangeError, dispatch
 from egorefine.data import render_sequence
 from egorefine.stereo import mask_boxes, match_stereo, match_stereo_regions
 
@@ -92,7 +92,7 @@ def test_other_paths_match_the_whole_frame(scene, path, monkeypatch):
     left, right, _ = scene
     mask = _mask(2, *left.shape[-2:])
     if path == "torch":
-        monkeypatch.setattr(matching, "_COMPILED_SAD", False)
+        monkeypatch.setattr(dispatch, "ENABLED", False)
         kwargs = {}
     else:
         kwargs = {"full_fraction": 0.0}  # any window is too much: each item is matched whole

@@ -8,8 +8,7 @@ import pytest
 import torch
 
 import egorefine.stereo.matching as matching
-import egorefine.stereo.residual as residual
-from egorefine.core import ShapeError, ValueRangeError
+from egorefine.core import ShapeError, ValueRangeError, dispatch
 from egorefine.stereo import _residual_numba, match_residual, match_stereo
 
 from ._synthetic import planar_pair, visible
@@ -35,7 +34,7 @@ REACH = {"warped": 1.2, "fronto": 0.5}
 @pytest.mark.parametrize("window", ["fronto", "warped"])
 @pytest.mark.parametrize("compiled", [True, False])
 def test_recovers_truth_from_an_offset_prior(plane, compiled, window, monkeypatch):
-    monkeypatch.setattr(residual, "_COMPILED", compiled)
+    monkeypatch.setattr(dispatch, "ENABLED", compiled)
     left, right, truth = plane
     prior = truth + REACH[window] + _smooth_error(truth.shape, 0.4, 0)  # warped: 0.8 .. 1.6 px off; fronto 0.1 .. 0.9
     out = match_residual(left, right, prior, window=window)
@@ -66,7 +65,7 @@ def test_compiled_agrees_with_torch(plane, window, monkeypatch):
     for fit in ("equiangular", "parabola"):
         outs = []
         for compiled in (False, True):
-            monkeypatch.setattr(residual, "_COMPILED", compiled)
+            monkeypatch.setattr(dispatch, "ENABLED", compiled)
             outs.append(match_residual(left, right, prior, radius=3, block_size=7, prior_valid=prior_valid,
                                        subpixel_fit=fit, window=window))
         ref, fast = outs
@@ -94,7 +93,7 @@ def test_compiled_output_does_not_depend_on_the_thread_count(window):
 @pytest.mark.parametrize("window", ["fronto", "warped"])
 @pytest.mark.parametrize("compiled", [True, False])
 def test_masks_and_bad_priors_give_invalid_not_nan(plane, compiled, window, monkeypatch):
-    monkeypatch.setattr(residual, "_COMPILED", compiled)
+    monkeypatch.setattr(dispatch, "ENABLED", compiled)
     left, right, truth = plane
     prior = truth.clone()
     prior[0, 0, 30, 60] = float("nan")

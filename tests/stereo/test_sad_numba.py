@@ -7,6 +7,7 @@ import torch
 
 import egorefine.stereo.fast as fast
 import egorefine.stereo.matching as matching
+from egorefine.core import _jit, dispatch
 from egorefine.stereo import _sad_numba, match_stereo
 
 from ._synthetic import planar_pair, smooth_texture
@@ -75,7 +76,7 @@ def test_match_stereo_takes_the_compiled_path_for_float32_cpu(pair, monkeypatch)
     monkeypatch.setattr(_sad_numba, "match_sad_compiled", lambda *a, **k: calls.append(1) or compiled(*a, **k))
     out = match_stereo(left, right, 16)
     assert calls == [1]
-    monkeypatch.setattr(matching, "_COMPILED_SAD", False)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
     ref = match_stereo(left, right, 16)
     assert calls == [1]
     for a, b in zip(out, ref, strict=True):
@@ -88,9 +89,9 @@ def test_torch_path_when_compiled_does_not_apply(pair, monkeypatch):
 
     left, right = pair
     monkeypatch.setattr(_sad_numba, "match_sad_compiled", refuse)
-    monkeypatch.setattr(_sad_numba, "AVAILABLE", False)
+    monkeypatch.setattr(_jit, "AVAILABLE", False)
     assert match_stereo(left, right, 16).disparity.shape == (2, 1, 37, 83)
-    monkeypatch.setattr(_sad_numba, "AVAILABLE", True)
+    monkeypatch.setattr(_jit, "AVAILABLE", True)
     match_stereo(left.double(), right.double(), 16)  # float64: the torch integer path
     match_stereo(left, right, 16, cost="zncc")  # other costs: the float path
     match_stereo(left.requires_grad_(True), right, 16)  # a gradient is wanted: the float path

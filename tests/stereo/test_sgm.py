@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from egorefine.core import _jit
 from egorefine.stereo import _sgm_numba, match_stereo, sgm_aggregate
 
 from ._synthetic import planar_pair
@@ -109,7 +110,7 @@ def test_match_stereo_numba_equals_torch_on_rendered_pair(monkeypatch):
     left, right, _ = planar_pair(1, 40, 72, seed=3)
     kw = {"cost": "census", "aggregation": "sgm", "block_size": 5}
     fast = match_stereo(left, right, 16, **kw)
-    monkeypatch.setattr(_sgm_numba, "AVAILABLE", False)
+    monkeypatch.setattr(_jit, "AVAILABLE", False)
     slow = match_stereo(left, right, 16, **kw)
     for a, b in zip(fast, slow, strict=True):
         assert torch.equal(a, b)
@@ -134,10 +135,10 @@ def test_torch_path_when_numba_is_off_or_not_applicable(monkeypatch):
     left, right = _random_pair(1, 12, 20, seed=2)
     kw = {"cost": "census", "aggregation": "sgm", "block_size": 3}
     monkeypatch.setattr(_sgm_numba, "census_sgm_select", refuse)
-    monkeypatch.setattr(_sgm_numba, "AVAILABLE", False)
+    monkeypatch.setattr(_jit, "AVAILABLE", False)
     out = match_stereo(left, right, 6, **kw)
     assert out.disparity.shape == (1, 1, 12, 20)
-    monkeypatch.setattr(_sgm_numba, "AVAILABLE", True)
+    monkeypatch.setattr(_jit, "AVAILABLE", True)
     match_stereo(left.double(), right.double(), 6, **kw)  # float64: torch path
     match_stereo(left, right, 6, **{**kw, "cost": "sad"})  # SGM of other costs: torch path
     with pytest.raises(AssertionError, match="compiled path"):

@@ -6,21 +6,20 @@ import numpy as np
 import pytest
 import torch
 
-import egorefine.stereo.speckle as speckle
-from egorefine.core import DTypeError, ShapeError, ValueRangeError
+from egorefine.core import DTypeError, ShapeError, ValueRangeError, dispatch
 from egorefine.stereo import INVALID_VARIANCE, match_stereo, remove_speckles
 
 
 def _both(disp, valid, max_size, max_diff):
     """(compiled, torch reference) outputs."""
-    previous = speckle._COMPILED
+    previous = dispatch.ENABLED
     try:
         out = []
         for compiled in (True, False):
-            speckle._COMPILED = compiled
+            dispatch.ENABLED = compiled
             out.append(remove_speckles(disp, valid, max_size, max_diff))
     finally:
-        speckle._COMPILED = previous
+        dispatch.ENABLED = previous
     return out
 
 
@@ -82,12 +81,12 @@ def test_matches_opencv_filter_speckles():
 def test_batch_items_are_independent():
     disp, valid = _random_map(4, b=3)
     for compiled in (True, False):
-        speckle._COMPILED = compiled
+        dispatch.ENABLED = compiled
         try:
             whole = remove_speckles(disp, valid, 9)
             alone = torch.cat([remove_speckles(disp[i : i + 1], valid[i : i + 1], 9) for i in range(3)])
         finally:
-            speckle._COMPILED = True
+            dispatch.ENABLED = True
         assert torch.equal(whole, alone)
 
 
