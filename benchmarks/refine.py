@@ -116,20 +116,19 @@ def imaging_default() -> str:
 
 
 def every_nth(seq: StereoSequence, n: int) -> StereoSequence:
-    """Every ``n``-th frame of ``seq`` (images, truth and poses); motions recomputed from the kept poses."""
+    """Every ``n``-th frame of ``seq``: every per-frame field (images, truth, poses, ...) sliced alike, the
+    motions recomputed from the kept poses."""
     if n == 1:
         return seq
-    keep = slice(None, None, n)
-    poses = seq.poses[keep].clone()
-    p64 = poses.double()
-    motions = torch.eye(4, dtype=torch.float64, device=poses.device).repeat(len(poses), 1, 1)
-    if len(poses) > 1:
+    keep, T = slice(None, None, n), len(seq)
+    fields = {f.name: getattr(seq, f.name) for f in dataclasses.fields(seq) if f.name != "K"}
+    kept = {k: v[keep].clone() for k, v in fields.items() if isinstance(v, torch.Tensor) and v.shape[:1] == (T,)}
+    p64 = kept["poses"].double()
+    motions = torch.eye(4, dtype=torch.float64, device=p64.device).repeat(len(p64), 1, 1)
+    if len(p64) > 1:
         motions[1:] = torch.linalg.inv(p64[1:]) @ p64[:-1]  # camera_t_T_camera_{t-1}, as render_sequence
-    return dataclasses.replace(
-        seq, left=seq.left[keep].clone(), right=seq.right[keep].clone(), disparity=seq.disparity[keep].clone(),
-        depth=seq.depth[keep].clone(), occluded=seq.occluded[keep].clone(), poses=poses,
-        motions=motions.to(seq.poses.dtype),
-    )
+    kept["motions"] = motions.to(seq.motions.dtype)
+    return dataclasses.replace(seq, **kept)
 
 
 def render(spec: Spec, frames: int, size: tuple[int, int] | None, seed: int, imaging: str | None) -> StereoSequence:
