@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's egorefine, not an installed one
 from _common import RESULTS, markdown_table, set_threads, update_readme, write_json  # noqa: E402
 
 from egorefine.data import StereoSequence, render_sequence  # noqa: E402
