@@ -1,29 +1,46 @@
-"""Benchmark of the predict-and-correct loop against per-frame stereo, on rendered sequences with exact truth.
+"""Benchmark of the predict-and-correct loop against per-frame stereo, on many rendered sequences with exact truth.
 
-For each sequence (the paper's rig and the KITTI-like preset, more than one scene and
-motion, 60+ frames each) and each method, in the same run:
+Sequences: per rig (the paper's and the KITTI-like preset, each at its full resolution) three scenes
+(corridor, hall, street) with two motions each, one of the two FAST: three times the preset's speed,
+rendered as three times the frames of which every third is kept (truth and poses alike; the motions are
+recomputed from the kept poses). Twelve sequences of 60 frames, each with its own seed. The imaging is
+the renderer's default (realistic once it has one); the JSON records which.
 
-* per-frame own stereo (integer and sub-pixel), per-frame OpenCV StereoBM and StereoSGBM (3-way);
-* the refiner in paper mode (the method as published: pixel-accurate stereo, the linear motion
-  solve of eq. 3, gate 0.5 px, gain 0.4) and in Kalman mode (sub-pixel stereo, exact SE(3)
-  motion, per-pixel variance), at verify_every 1, 5 and 10; Kalman mode with the +-2 px
-  residual search between verifications (at 5 and 10), and with it plus the hole measurement (at 5);
+Seeds: seeds 0-99 (``TUNING_SEEDS``) are for tuning and never reported: ``--tune`` runs the same
+sequences on them and writes ``results/cache/refine_tune.json`` only. The reported run draws
+sequence ``i``'s seed as ``REPORT_SEED_BASE + i`` (1000 + i), and refuses to write the README from
+any other seed.
 
-it reports EPE, median error, bad-0.5, bad-1 (on pixels each method marks valid and that
-have truth, not occluded), density (share of those pixels a method marks valid), the
-temporal consistency of the error, the number of distinct disparity levels along a row, and
-ms per frame. Writes benchmarks/results/refine.json, the README table and a row figure.
+Methods, per sequence, in the same run: per-frame own stereo (the default matcher, sub-pixel), per-frame
+OpenCV StereoBM and StereoSGBM as OpenCV users run them (SGBM 3-way, blockSize 5, P1 = 8*cn*bs^2,
+P2 = 32*cn*bs^2, uniquenessRatio 10, speckleWindowSize 100, speckleRange 2, disp12MaxDiff 1), and the
+refiner at verify_every=5: Kalman mode with default options (the target row), paper mode (the method
+as published: pixel-accurate stereo, the linear motion solve of eq. 3, gate 0.5 px, gain 0.4), and
+Kalman mode with the opt-in +-2 px residual search and hole measurement.
 
-    python benchmarks/refine.py            # full run (several minutes on 2 cores)
-    python benchmarks/refine.py --quick    # small images, few frames: a smoke run
+For each it reports EPE, median error, bad-0.5, bad-1 (on pixels a method marks valid that have truth
+and are not occluded), density (share of those pixels a method marks valid), the temporal consistency
+of the error, the distinct disparity levels along a row, and ms per frame (every method warmed up
+first, so that no numba compile lands in a timing); per rig, the mean and the min-max across
+sequences; and per sequence, PASS/FAIL on issue 17's targets for Kalman mode @5 with defaults:
+(a) lower EPE and lower bad-0.5 than per-frame SGBM at no lower density; (b) density at least our own
+per-frame stereo's; (c) fewer ms per frame than per-frame SGBM. Writes benchmarks/results/refine.json,
+the README table and a row figure per sequence.
+
+    python benchmarks/refine.py                  # full run (many minutes on 2 cores)
+    python benchmarks/refine.py --quick          # two tiny sequences, a few frames: a smoke run
+    python benchmarks/refine.py --only kitti_street_turn_x3   # one (or a comma-separated few), full size
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import inspect
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -31,42 +48,123 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's egorefine, not an installed one
 from _common import RESULTS, markdown_table, set_threads, update_readme, write_json  # noqa: E402
 
-from egorefine.data import render_sequence  # noqa: E402
+from egorefine.data import StereoSequence, render_sequence  # noqa: E402
 from egorefine.metrics import distinct_levels, evaluate_disparity, temporal_consistency  # noqa: E402
 from egorefine.refine import EgoMotionRefiner  # noqa: E402
 from egorefine.stereo import block_matching  # noqa: E402
 
-# (preset, scene, motion, max_disparity): two scenes/motions per rig.
+# Seeds 0-99 are for tuning (tests, experiments, --tune); the reported run uses REPORT_SEED_BASE + i.
+TUNING_SEEDS = range(0, 100)
+REPORT_SEED_BASE = 1000
+FAST = 3  # a fast sequence moves at three times the preset's speed
+VERIFY_EVERY = 5
+MAX_DISPARITY = {"paper": 64, "kitti": 128}
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """One benchmark sequence: rig preset, scene, motion, and how many rendered frames make one step."""
+
+    preset: str
+    scene: str
+    motion: str
+    step: int = 1
+
+    @property
+    def name(self) -> str:
+        return f"{self.preset}_{self.scene}_{self.motion}" + (f"_x{self.step}" if self.step > 1 else "")
+
+
+# Three scenes x two motions per rig, one of each scene's two motions fast. The index in this list
+# fixes a sequence's seed, so append, never reorder.
 SEQUENCES = [
-    ("paper", "corridor", "forward", 64),
-    ("paper", "hall", "turn", 64),
-    ("kitti", "street", "forward", 128),
-    ("kitti", "hall", "shaky", 128),
+    Spec("paper", "corridor", "forward"),
+    Spec("paper", "corridor", "turn", FAST),
+    Spec("paper", "hall", "turn"),
+    Spec("paper", "hall", "forward", FAST),
+    Spec("paper", "street", "lateral"),
+    Spec("paper", "street", "shaky", FAST),
+    Spec("kitti", "street", "forward"),
+    Spec("kitti", "street", "turn", FAST),
+    Spec("kitti", "hall", "shaky"),
+    Spec("kitti", "hall", "forward", FAST),
+    Spec("kitti", "corridor", "still"),
+    Spec("kitti", "corridor", "shaky", FAST),
 ]
+QUICK = ("paper_corridor_forward", "kitti_street_turn_x3")  # one per rig, one of them fast
+QUICK_SIZE = {"paper": (72, 96), "kitti": (64, 208)}
+QUICK_FRAMES = 8
+
+OWN = "own stereo, sub-pixel"
+BM = "OpenCV StereoBM"
+SGBM = "OpenCV SGBM 3-way"
+KALMAN = f"kalman mode, verify every {VERIFY_EVERY}"
+PAPER = f"paper mode, verify every {VERIFY_EVERY}"
+HOLES = f"kalman + local search 2 + holes, verify every {VERIFY_EVERY}"
+
+
+def seed_of(index: int, tune: bool) -> int:
+    return TUNING_SEEDS[index] if tune else REPORT_SEED_BASE + index
+
+
+def imaging_default() -> str:
+    """The imaging the renderer uses by default, for the record."""
+    param = inspect.signature(render_sequence).parameters.get("imaging")
+    return "ideal (the renderer has no imaging option)" if param is None else str(param.default)
+
+
+def every_nth(seq: StereoSequence, n: int) -> StereoSequence:
+    """Every ``n``-th frame of ``seq``: every per-frame field (images, truth, poses, ...) sliced alike, the
+    motions recomputed from the kept poses."""
+    if n == 1:
+        return seq
+    keep, T = slice(None, None, n), len(seq)
+    fields = {f.name: getattr(seq, f.name) for f in dataclasses.fields(seq) if f.name != "K"}
+    kept = {k: v[keep].clone() for k, v in fields.items() if isinstance(v, torch.Tensor) and v.shape[:1] == (T,)}
+    p64 = kept["poses"].double()
+    motions = torch.eye(4, dtype=torch.float64, device=p64.device).repeat(len(p64), 1, 1)
+    if len(p64) > 1:
+        motions[1:] = torch.linalg.inv(p64[1:]) @ p64[:-1]  # camera_t_T_camera_{t-1}, as render_sequence
+    kept["motions"] = motions.to(seq.motions.dtype)
+    return dataclasses.replace(seq, **kept)
+
+
+def render(spec: Spec, frames: int, size: tuple[int, int] | None, seed: int, imaging: str | None) -> StereoSequence:
+    extra = {} if size is None else {"height": size[0], "width": size[1]}
+    if imaging is not None:
+        extra["imaging"] = imaging
+    seq = render_sequence(num_frames=(frames - 1) * spec.step + 1, preset=spec.preset, scene=spec.scene,
+                          motion=spec.motion, seed=seed, **extra)
+    return every_nth(seq, spec.step)
 
 
 def _u8(img: torch.Tensor) -> np.ndarray:
     return (img[0, 0].clamp(0, 1) * 255).round().byte().numpy()
 
 
-def opencv_matchers(max_disparity: int, block: int = 9) -> dict:
-    bm = cv2.StereoBM_create(numDisparities=max_disparity, blockSize=block)
+def opencv_matchers(max_disparity: int) -> dict[str, Callable]:
+    """StereoBM and StereoSGBM with the settings OpenCV users run (grey images, so cn = 1)."""
+    bm = cv2.StereoBM_create(numDisparities=max_disparity, blockSize=9)
+    bs, cn = 5, 1
     sgbm = cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=max_disparity, blockSize=5, P1=8 * 25, P2=32 * 25,
-        uniquenessRatio=10, disp12MaxDiff=1, speckleWindowSize=0, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+        minDisparity=0, numDisparities=max_disparity, blockSize=bs, P1=8 * cn * bs**2, P2=32 * cn * bs**2,
+        uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
 
     def run(matcher):
         def f(left: torch.Tensor, right: torch.Tensor):
-            d = matcher.compute(_u8(left), _u8(right)).astype(np.float32) / 16.0
-            d = torch.from_numpy(d)[None, None]
-            return d.clamp_min(0), d > 0
+            raw = matcher.compute(_u8(left), _u8(right))
+            d = torch.from_numpy(raw.astype(np.float32) / 16.0)[None, None]
+            # OpenCV marks an invalid pixel with (minDisparity - 1) * 16, here -16.
+            return d.clamp_min(0), torch.from_numpy(raw >= 0)[None, None]
 
         return f
 
-    return {"OpenCV StereoBM": run(bm), "OpenCV SGBM 3-way": run(sgbm)}
+    return {BM: run(bm), SGBM: run(sgbm)}
 
 
 # numba compiles a kernel on its first call (or loads it from its cache, which any edit of its module
@@ -74,33 +172,25 @@ def opencv_matchers(max_disparity: int, block: int = 9) -> dict:
 _WARM_UP_FRAMES = 6
 
 
-def run_per_frame(fn, seq) -> tuple[torch.Tensor, torch.Tensor, list[float]]:
+def run_per_frame(fn, seq: StereoSequence) -> tuple[torch.Tensor, torch.Tensor, list[float], int]:
     fn(seq.left[:1], seq.right[:1])  # warm-up
     disp, valid, ms = [], [], []
-    for t in range(len(seq.left)):
+    for t in range(len(seq)):
         t0 = time.perf_counter()
         d, v = fn(seq.left[t : t + 1], seq.right[t : t + 1])
         ms.append((time.perf_counter() - t0) * 1e3)
         disp.append(d)
         valid.append(v)
-    return torch.cat(disp), torch.cat(valid), ms
+    return torch.cat(disp), torch.cat(valid), ms, len(seq)
 
 
-def warm_up(refiner: EgoMotionRefiner, seq) -> None:
-    """The refiner on the first frames (with and without stereo), untimed."""
+def run_refiner(refiner: EgoMotionRefiner, seq: StereoSequence) -> tuple[torch.Tensor, torch.Tensor, list[float], int]:
     K, b = seq.K[None], torch.tensor([seq.baseline])
     state = None
-    for t in range(min(_WARM_UP_FRAMES, len(seq.left))):
+    for t in range(min(_WARM_UP_FRAMES, len(seq))):  # warm-up, with and without stereo, untimed
         _, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
-
-
-def run_refiner(refiner: EgoMotionRefiner, seq, warm: bool = True
-                ) -> tuple[torch.Tensor, torch.Tensor, list[float], int]:
-    if warm:
-        warm_up(refiner, seq)
-    K, b = seq.K[None], torch.tensor([seq.baseline])
     state, disp, valid, ms, stereo = None, [], [], [], 0
-    for t in range(len(seq.left)):
+    for t in range(len(seq)):
         t0 = time.perf_counter()
         out, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
         ms.append((time.perf_counter() - t0) * 1e3)
@@ -110,188 +200,208 @@ def run_refiner(refiner: EgoMotionRefiner, seq, warm: bool = True
     return torch.cat(disp), torch.cat(valid), ms, stereo
 
 
-class TrackingClock:
-    """Time the refiner spends tracking (pyramid building and ``track``), per frame.
+def methods_for(max_disp: int, holes: bool) -> dict[str, Callable[[StereoSequence], tuple]]:
+    def refiner(**options):
+        return lambda seq: run_refiner(EgoMotionRefiner(max_disparity=max_disp, verify_every=VERIFY_EVERY,
+                                                        **options), seq)
 
-    A per-frame-stereo pipeline needs the same tracking for its ego-motion, so this is the tracking
-    term of the time target; it is measured inside a refiner run (constant-velocity prediction and
-    pyramid reuse, as the loop tracks) by wrapping the two functions the refiner calls.
-    """
-
-    def __init__(self) -> None:
-        import egorefine.refine.refiner as refiner_module
-
-        self.module, self.total_ms, self.originals = refiner_module, 0.0, {}
-
-    def __enter__(self) -> TrackingClock:
-        for name in ("track", "build_pyramid"):
-            original = getattr(self.module, name)
-            self.originals[name] = original
-
-            def timed(*args, _f=original, **kwargs):
-                t0 = time.perf_counter()
-                out = _f(*args, **kwargs)
-                self.total_ms += (time.perf_counter() - t0) * 1e3
-                return out
-
-            setattr(self.module, name, timed)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for name, original in self.originals.items():
-            setattr(self.module, name, original)
+    methods = {OWN: lambda seq: run_per_frame(lambda a, b: block_matching(a, b, max_disp), seq)}
+    for name, fn in opencv_matchers(max_disp).items():
+        methods[name] = lambda seq, fn=fn: run_per_frame(fn, seq)
+    methods[KALMAN] = refiner(fusion="kalman")  # every other option at its default: the target row
+    methods[PAPER] = refiner(fusion="paper", motion_method="linear", subpixel=False)
+    if holes:
+        methods[HOLES] = refiner(fusion="kalman", local_search=2, measure_holes=True)
+    return methods
 
 
-def benchmark_sequence(preset, scene, motion, max_disp, frames, size, seed, figure_dir) -> dict:
-    extra = {} if size is None else {"height": size[0], "width": size[1]}
+def check_targets(m: dict[str, dict]) -> dict[str, bool]:
+    """Issue 17's targets for Kalman mode @5 with defaults on one sequence."""
+    k, s, own = m[KALMAN], m[SGBM], m[OWN]
+    return {
+        "a": k["epe"] < s["epe"] and k["bad-0.5"] < s["bad-0.5"] and k["density"] >= s["density"],
+        "b": k["density"] >= own["density"],
+        "c": k["ms_mean"] < s["ms_mean"],
+    }
+
+
+def benchmark_sequence(spec: Spec, frames: int, size, seed: int, imaging: str | None, holes: bool,
+                       figure_dir: Path | None) -> dict:
     t0 = time.perf_counter()
-    seq = render_sequence(num_frames=frames, preset=preset, scene=scene, motion=motion, seed=seed, **extra)
+    seq = render(spec, frames, size, seed, imaging)
     render_s = time.perf_counter() - t0
     T, _, H, W = seq.left.shape
-    max_disp = min(max_disp, (W // 16) * 16 - 16)
+    max_disp = min(MAX_DISPARITY[spec.preset], (W // 16) * 16 - 16)
     gt = seq.disparity
     mask = (gt > 0) & ~seq.occluded
-    print(f"[{preset}/{scene}/{motion}] {T} frames {W}x{H}, rendered in {render_s:.1f} s", file=sys.stderr)
+    print(f"[{spec.name}, seed {seed}] {T} frames {W}x{H}, rendered in {render_s:.1f} s", file=sys.stderr)
 
     methods: dict[str, dict] = {}
-
-    def record(name, disp, valid, ms, stereo_frames):
-        m = evaluate_disparity(disp, gt, valid, mask)
-        m["temporal"] = float(temporal_consistency(torch.where(valid, disp, gt), gt, mask & valid))
+    maps: dict[str, torch.Tensor] = {}
+    run_s = time.perf_counter()
+    for name, run in methods_for(max_disp, holes).items():
+        d, v, ms, stereo_frames = run(seq)
+        m = evaluate_disparity(d, gt, v, mask)
+        m["temporal"] = float(temporal_consistency(torch.where(v, d, gt), gt, mask & v))
         m["ms_mean"] = statistics.fmean(ms)
         m["ms_median"] = statistics.median(ms)
         m["stereo_frames"] = stereo_frames
         methods[name] = m
-        print(f"  {name:34s} EPE {m['epe']:.3f}  median {m['median']:.3f}  bad-0.5 {m['bad-0.5']:.3f}  "
-              f"density {m['density']:.3f}  {m['ms_mean']:.1f} ms/frame", file=sys.stderr)
-        return disp
+        maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
+        print(f"  {name:48s} EPE {m['epe']:.3f}  bad-0.5 {m['bad-0.5']:.3f}  density {m['density']:.3f}  "
+              f"{m['ms_mean']:.1f} ms/frame", file=sys.stderr)
+    run_s = time.perf_counter() - run_s
 
-    maps = {}
-    for name, sub in (("own stereo, integer", False), ("own stereo, sub-pixel", True)):
-        d, v, ms = run_per_frame(lambda a, b, s=sub: block_matching(a, b, max_disp, subpixel=s), seq)
-        maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
-        record(name, d, v, ms, T)
-    for name, fn in opencv_matchers(max_disp).items():
-        d, v, ms = run_per_frame(fn, seq)
-        maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
-        record(name, d, v, ms, T)
-    # Paper mode is the method as published: pixel-accurate block matching, eq. (3), gate 0.5 px, gain 0.4.
-    for fusion, motion_method, subpixel in (("paper", "linear", False), ("kalman", "exact", True)):
-        for every in (1, 5, 10):
-            refiner = EgoMotionRefiner(max_disparity=max_disp, verify_every=every, fusion=fusion,
-                                       motion_method=motion_method, subpixel=subpixel)
-            if fusion == "kalman" and every == 5:
-                warm_up(refiner, seq)  # (outside the clock: it times the timed run's tracking)
-                with TrackingClock() as clock:
-                    d, v, ms, n = run_refiner(refiner, seq, warm=False)
-                track_ms = clock.total_ms / T
-            else:
-                d, v, ms, n = run_refiner(refiner, seq)
-            name = f"{fusion} mode, verify every {every}"
-            maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
-            record(name, d, v, ms, n)
-    # Kalman mode with the residual search of +-2 px around the prediction on the frames without stereo.
-    for every in (5, 10):
-        refiner = EgoMotionRefiner(max_disparity=max_disp, verify_every=every, fusion="kalman", local_search=2)
-        d, v, ms, n = run_refiner(refiner, seq)
-        name = f"kalman + local search 2, verify every {every}"
-        maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
-        record(name, d, v, ms, n)
-    # ... and the prediction's holes measured on the regions where they are dense (EgoMotionRefiner.measure_holes).
-    refiner = EgoMotionRefiner(max_disparity=max_disp, verify_every=5, fusion="kalman", local_search=2,
-                               measure_holes=True)
-    d, v, ms, n = run_refiner(refiner, seq)
-    name = "kalman + local search 2 + holes, verify every 5"
-    maps[name] = torch.where(v, d, torch.full_like(d, float("nan")))
-    record(name, d, v, ms, n)
-
-    # Depth layers along one row of a frame that is not a verification frame at i = 5.
-    frame = T - 2 if (T - 2) % 5 else T - 3
+    # Depth layers along one row of a frame that is not a verification frame.
+    frame = T - 2 if (T - 2) % VERIFY_EVERY else T - 3
     row = int(H * 0.6)
     row_mask = mask[frame, 0, row]
     for name, m in methods.items():
         vals = maps[name][frame, 0, row][row_mask]
         m["levels_row"] = distinct_levels(vals[torch.isfinite(vals)])
-    methods_gt_levels = distinct_levels(gt[frame, 0, row][row_mask])
+    gt_levels = distinct_levels(gt[frame, 0, row][row_mask])
 
     if figure_dir is not None:
         try:
             from egorefine.viz import save_row_figure
 
             curves = {"ground truth": gt[frame, 0]}
-            for name in ("own stereo, integer", "OpenCV SGBM 3-way", "paper mode, verify every 5",
-                         "kalman mode, verify every 5"):
-                curves[name] = maps[name][frame, 0]
-            save_row_figure(figure_dir / f"refine_row_{preset}_{scene}_{motion}.png", row, curves,
-                            max_disparity=float(gt[frame].max()),
-                            title=f"{preset}/{scene}/{motion}, frame {frame}, row {row}")
+            curves.update({name: maps[name][frame, 0] for name in (OWN, SGBM, PAPER, KALMAN)})
+            save_row_figure(figure_dir / f"refine_row_{spec.name}.png", row, curves,
+                            max_disparity=float(gt[frame].max()), title=f"{spec.name}, frame {frame}, row {row}")
         except ImportError:
             pass
-    return {"preset": preset, "scene": scene, "motion": motion, "frames": T, "size": [W, H],
-            "max_disparity": max_disp, "render_s": render_s, "gt_levels_row": methods_gt_levels,
-            "tracking_ms": track_ms, "methods": methods}
+    targets = check_targets(methods)
+    print("  targets: " + "  ".join(f"({k}) {'PASS' if v else 'FAIL'}" for k, v in targets.items())
+          + f"; methods ran in {run_s:.1f} s", file=sys.stderr)
+    return {"name": spec.name, "preset": spec.preset, "scene": spec.scene, "motion": spec.motion,
+            "speed": spec.step, "seed": seed, "frames": T, "size": [W, H], "max_disparity": max_disp,
+            "render_s": render_s, "methods_s": run_s, "gt_levels_row": gt_levels, "targets": targets,
+            "methods": methods}
+
+
+def _spread(vals: list[float]) -> dict[str, float]:
+    return {"mean": statistics.fmean(vals), "min": min(vals), "max": max(vals),
+            "std": statistics.pstdev(vals) if len(vals) > 1 else 0.0}
+
+
+def _fmt(s: dict[str, float], digits: int = 3) -> str:
+    def f(v: float) -> str:
+        return f"{v:.{digits}f}"
+
+    return f"{f(s['mean'])} ({f(s['min'])}-{f(s['max'])})"
+
+
+def _ok(flag: bool) -> str:
+    return "PASS" if flag else "FAIL"
+
+
+def report(results: list[dict]) -> tuple[str, str, dict]:
+    """(summary and targets for the README, the per-sequence table, the summary as data)."""
+    keys = ("epe", "median", "bad-0.5", "bad-1", "density", "temporal", "ms_mean")
+    summary: dict[str, dict] = {}
+    rows = []
+    for preset in dict.fromkeys(r["preset"] for r in results):
+        seqs = [r for r in results if r["preset"] == preset]
+        for name in seqs[0]["methods"]:
+            stats = {k: _spread([s["methods"][name][k] for s in seqs]) for k in keys}
+            summary[f"{preset}/{name}"] = stats
+            rows.append([preset, len(seqs), name, _fmt(stats["epe"]), _fmt(stats["bad-0.5"]),
+                         _fmt(stats["density"]), _fmt(stats["ms_mean"], 1)])
+    table = markdown_table(["rig", "sequences", "method", "EPE", "bad-0.5", "density", "ms/frame"], rows)
+
+    t_rows = []
+    for r in results:
+        k, s, own, t = r["methods"][KALMAN], r["methods"][SGBM], r["methods"][OWN], r["targets"]
+        t_rows.append([r["name"], r["seed"], f"{k['epe']:.3f} / {s['epe']:.3f}",
+                       f"{k['bad-0.5']:.3f} / {s['bad-0.5']:.3f}",
+                       f"{k['density']:.3f} / {s['density']:.3f} / {own['density']:.3f}",
+                       f"{k['ms_mean']:.1f} / {s['ms_mean']:.1f}", _ok(t["a"]), _ok(t["b"]), _ok(t["c"])])
+    targets = markdown_table(["sequence", "seed", "EPE K / SGBM", "bad-0.5 K / SGBM", "density K / SGBM / own",
+                              "ms/frame K / SGBM", "(a)", "(b)", "(c)"], t_rows)
+    n = len(results)
+    counts = {k: sum(r["targets"][k] for r in results) for k in ("a", "b", "c")}
+    seq_rows = []
+    for r in results:
+        for name, m in r["methods"].items():
+            seq_rows.append([r["name"], r["seed"], name, m["epe"], m["median"], m["bad-0.5"], m["bad-1"],
+                             m["density"], m["temporal"], m["levels_row"], f"{m['stereo_frames']}/{r['frames']}",
+                             m["ms_mean"]])
+    per_seq = markdown_table(["sequence", "seed", "method", "EPE", "median", "bad-0.5", "bad-1", "density",
+                              "temporal", "levels/row", "stereo frames", "ms/frame"], seq_rows)
+
+    first = results[0]
+    sizes = ", ".join(sorted({f"{r['size'][0]}x{r['size'][1]}" for r in results}))
+    text = (
+        f"Mean (min-max) across sequences, per rig. {n} sequences of {first['frames']} frames "
+        f"({sizes}), imaging: "
+        f"{first['imaging']}; seeds {min(r['seed'] for r in results)}-{max(r['seed'] for r in results)} "
+        f"(seeds {TUNING_SEEDS.start}-{TUNING_SEEDS.stop - 1} are for tuning, never reported); `_x{FAST}`: "
+        f"{FAST} times the preset's speed. Errors in px on valid pixels with truth, not occluded.\n\n"
+        f"{table}\n\n"
+        f"Targets for Kalman mode at verify every {VERIFY_EVERY} with default options (K), per sequence: "
+        f"(a) lower EPE and lower bad-0.5 than per-frame OpenCV SGBM at no lower density; (b) density at least "
+        f"our own per-frame stereo's; (c) fewer ms per frame than SGBM. "
+        f"Passed: (a) {counts['a']}/{n}, (b) {counts['b']}/{n}, (c) {counts['c']}/{n}.\n\n"
+        f"{targets}\n\n"
+        f"<details><summary>Every sequence and method</summary>\n\n{per_seq}\n\n</details>"
+    )
+    return text, per_seq, {"methods": summary, "target_passes": counts, "sequences": n}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--frames", type=int, default=60, help="frames per sequence, after keeping every third "
+                        "of a fast one")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--quick", action="store_true", help="10 frames at a quarter of the size; no README update")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"{len(QUICK)} sequences, {QUICK_FRAMES} frames of tiny images; no README update")
+    parser.add_argument("--only", default=None, help="comma-separated sequence names (e.g. paper_hall_turn); "
+                        "writes results/cache/refine_partial.json, no README")
+    parser.add_argument("--tune", action="store_true",
+                        help="run on the tuning seeds; writes results/cache/refine_tune.json only")
+    parser.add_argument("--imaging", default=None, help="passed to render_sequence (default: its own default)")
+    parser.add_argument("--no-holes", action="store_true", help="skip the opt-in local search + holes row")
     args = parser.parse_args()
     set_threads(args.threads)
-    torch.manual_seed(args.seed)
-    frames = 10 if args.quick else args.frames
+    torch.manual_seed(0)
+    names = [s.name for s in SEQUENCES]
+    wanted = list(QUICK) if args.quick else names
+    if args.only:
+        wanted = [w.strip() for w in args.only.split(",") if w.strip()]
+        unknown = [w for w in wanted if w not in names]
+        if unknown:
+            parser.error(f"--only: unknown sequence(s) {', '.join(unknown)}; choose from {', '.join(names)}")
+    frames = QUICK_FRAMES if args.quick else args.frames
+    imaging = args.imaging if args.imaging is not None else imaging_default()
+    partial = args.quick or args.only or args.tune
+    t0 = time.perf_counter()
     results = []
-    for preset, scene, motion, max_disp in SEQUENCES:
-        size = None
-        if args.quick:
-            size = (120, 160) if preset == "paper" else (96, 320)
-        results.append(benchmark_sequence(preset, scene, motion, max_disp, frames, size, args.seed,
-                                          None if args.quick else RESULTS))
+    for index, spec in enumerate(SEQUENCES):
+        if spec.name not in wanted:
+            continue
+        seed = seed_of(index, args.tune)
+        size = QUICK_SIZE[spec.preset] if args.quick else None
+        r = benchmark_sequence(spec, frames, size, seed, args.imaging, not args.no_holes,
+                               None if partial else RESULTS)
+        r["imaging"] = imaging
+        results.append(r)
+    total_s = time.perf_counter() - t0
+    if not args.tune and any(r["seed"] in TUNING_SEEDS for r in results):
+        raise RuntimeError("a reported sequence drew a tuning seed")  # SEQUENCES grew past the seed layout
 
-    # Averages over the sequences of each rig, per method.
-    header = ["rig", "method", "EPE", "median", "bad-0.5", "bad-1", "density", "temporal", "levels/row",
-              "stereo frames", "ms/frame"]
-    rows = []
-    summary = {}
-    for preset in ("paper", "kitti"):
-        seqs = [r for r in results if r["preset"] == preset]
-        for name in seqs[0]["methods"]:
-            vals = {k: statistics.fmean(s["methods"][name][k] for s in seqs)
-                    for k in ("epe", "median", "bad-0.5", "bad-1", "density", "temporal", "ms_mean", "levels_row")}
-            n = sum(s["methods"][name]["stereo_frames"] for s in seqs)
-            total = sum(s["frames"] for s in seqs)
-            summary[f"{preset}/{name}"] = vals
-            rows.append([preset, name, vals["epe"], vals["median"], vals["bad-0.5"], vals["bad-1"], vals["density"],
-                         vals["temporal"], f"{vals['levels_row']:.0f}", f"{n}/{total}", vals["ms_mean"]])
-    rigs = ("paper", "kitti")
-    gt_levels = {p: statistics.fmean(r["gt_levels_row"] for r in results if r["preset"] == p) for p in rigs}
-    track = {p: statistics.fmean(r["tracking_ms"] for r in results if r["preset"] == p) for p in rigs}
-    notes = []
-    for p in ("paper", "kitti"):
-        own = summary[f"{p}/own stereo, sub-pixel"]["ms_mean"]
-        k5 = summary[f"{p}/kalman mode, verify every 5"]["ms_mean"]
-        p5 = summary[f"{p}/paper mode, verify every 5"]["ms_mean"]
-        sg = summary[f"{p}/OpenCV SGBM 3-way"]["ms_mean"]
-        ls5 = summary[f"{p}/kalman + local search 2, verify every 5"]["ms_mean"]
-        h5 = summary[f"{p}/kalman + local search 2 + holes, verify every 5"]["ms_mean"]
-        base = own + track[p]
-        notes.append(f"{p}: verify every 5 costs {k5:.0f} ms/frame (Kalman), {ls5:.0f} (Kalman + local search), "
-                     f"{h5:.0f} (+ holes) and {p5:.0f} ms/frame (paper) = {100 * k5 / base:.0f} % / "
-                     f"{100 * ls5 / base:.0f} % / {100 * h5 / base:.0f} % / {100 * p5 / base:.0f} % of per-frame own "
-                     f"stereo + tracking ({own:.0f} + {track[p]:.0f} ms); OpenCV SGBM: {sg:.0f} ms/frame. "
-                     f"Ground truth has {gt_levels[p]:.0f} distinct levels along the row.")
-    table = markdown_table(header, rows)
-    table += "\n\n" + "\n".join(f"- {n}" for n in notes)
-    seq_list = ", ".join(f"{r['preset']}/{r['scene']}/{r['motion']} ({r['size'][0]}x{r['size'][1]}, {r['frames']} "
-                         f"frames)" for r in results)
-    table += f"\n\nSequences (averaged per rig): {seq_list}. Errors in px on valid pixels with truth."
-    print(table)
-    write_json("refine_quick" if args.quick else "refine", {"sequences": results, "summary": summary,
-                                                            "notes": notes})
-    if not args.quick:
-        update_readme("refine", table)
+    text, per_seq, summary = report(results)
+    print(text.split("<details>")[0].rstrip())
+    print("\n" + per_seq)
+    print(f"\n{len(results)} sequences in {total_s:.0f} s", file=sys.stderr)
+    # Partial and tuning runs go to the (git-ignored) cache folder, never beside the reported result.
+    name = "refine_quick" if args.quick else "cache/refine_tune" if args.tune else "cache/refine_partial" \
+        if args.only else "refine"
+    (RESULTS / "cache").mkdir(parents=True, exist_ok=True)
+    write_json(name, {"imaging": imaging, "verify_every": VERIFY_EVERY, "tuning_seeds": [TUNING_SEEDS.start,
+                      TUNING_SEEDS.stop - 1], "total_s": total_s, "sequences": results, "summary": summary})
+    if not partial:
+        update_readme("refine", text)
 
 
 if __name__ == "__main__":
