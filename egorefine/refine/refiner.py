@@ -185,6 +185,48 @@ def _take_hole_measurements(
             torch.where(take, torch.zeros_like(outliers), outliers), _confidence(valid, variance))
 
 
+def _overrule(
+    maps: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+    pred: Prediction,
+    meas: StereoOutput,
+    keep: torch.Tensor,
+    restart: torch.Tensor,
+    regions: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The corrected ``(disparity, variance, valid, outliers)`` with the recovery rules of a verification applied:
+    items in ``restart`` ``(B,)`` take the measurement whole (their motion failed), items in ``keep`` ``(B,)`` the
+    prediction whole (their stereo failed), and elsewhere the pixels of ``regions`` ``(B, 1, H, W)`` take the
+    measurement; taken pixels get a zero outlier count. CPU maps without gradient are written with numpy (no torch
+    pass over the full maps), others with the same rule in torch."""
+    disparity, variance, valid, outliers = maps
+    tensors = (disparity, variance, outliers, pred.disparity, pred.variance, meas.disparity, meas.variance)
+    if use_compiled(*tensors, valid, pred.valid, meas.valid, regions):
+        out = [t.numpy().copy() for t in (disparity, variance, valid, outliers)]
+        take = regions.numpy() & ~keep.numpy()[:, None, None, None]
+        for dst, src in zip(out[:3], (meas.disparity, meas.variance, meas.valid), strict=True):
+            np.copyto(dst, src.numpy(), where=take)
+        out[3][take] = 0
+        for b in np.flatnonzero(keep.numpy()):
+            for dst, src in zip(out[:3], (pred.disparity, pred.variance, pred.valid), strict=True):
+                dst[b] = src[b].numpy()
+            out[3][b] = 0
+        for b in np.flatnonzero(restart.numpy()):
+            for dst, src in zip(out[:3], (meas.disparity, meas.variance, meas.valid), strict=True):
+                dst[b] = src[b].numpy()
+            out[3][b] = 0
+        return tuple(torch.from_numpy(a) for a in out)
+    item_keep, item_restart = keep[:, None, None, None], restart[:, None, None, None]
+    take = (regions & ~item_keep) | item_restart
+
+    def pick(corrected, predicted, measured):
+        return torch.where(item_restart, measured, torch.where(item_keep, predicted, torch.where(take, measured,
+                                                                                                 corrected)))
+
+    return (pick(disparity, pred.disparity, meas.disparity), pick(variance, pred.variance, meas.variance),
+            pick(valid, pred.valid, meas.valid),
+            torch.where(take | item_keep, torch.zeros_like(outliers), outliers))
+
+
 def _sample(disparity: torch.Tensor, valid: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear samples ``(B, N)`` of ``disparity`` ``(B, 1, H, W)`` at pixel positions ``(B, N, 2)`` (clamped to the
     image), and whether all four pixels they blend are ``valid``: a gather of the four corners, not a pass over the
@@ -626,19 +668,10 @@ class EgoMotionRefiner(nn.Module):
             status = status | flag(rejected, Status.MEASUREMENT_REJECTED)
             reset_items = (count_per_item(reset) > 0) & ~rejected  # (a rejected item keeps its whole prediction)
             status = status | flag(reset_items, Status.PREDICTION_RESET)
-            if bool(rejected.any()) or bool(reset_items.any()):
-                keep = rejected[:, None, None, None]
-                disparity = torch.where(keep, pred.disparity, torch.where(reset, meas.disparity, disparity))
-                variance = torch.where(keep, pred.variance, torch.where(reset, meas.variance, variance))
-                valid = torch.where(keep, pred.valid, torch.where(reset, meas.valid, valid))
-                outliers = torch.where(keep | reset, torch.zeros_like(outliers), outliers)
-            # Where the motion failed the prediction is meaningless: restart that item from stereo.
-            if not bool(ok.all()):
-                bad = (~ok)[:, None, None, None]
-                disparity = torch.where(bad, meas.disparity, disparity)
-                variance = torch.where(bad, meas.variance, variance)
-                valid = torch.where(bad, meas.valid, valid)
-                outliers = torch.where(bad, torch.zeros_like(outliers), outliers)
+            # Where the motion failed the prediction is meaningless: that item restarts from stereo.
+            if bool(rejected.any()) or bool(reset_items.any()) or not bool(ok.all()):
+                disparity, variance, valid, outliers = _overrule(
+                    (disparity, variance, valid, outliers), pred, meas, keep=rejected, restart=~ok, regions=reset)
             confidence = _confidence(valid, variance)
         elif self.local_search and right is not None:
             # 4'. no stereo on this frame: a narrow residual search around the prediction corrects it.

@@ -145,3 +145,34 @@ def test_disagreeing_regions_numpy_and_torch_agree(shape):
     numpy_path = disagreeing_regions(e, ev, s, sv)
     assert numpy_path.any() and not numpy_path.all()
     assert torch.equal(numpy_path, _disagreeing_regions_torch(e, ev, s, sv))
+
+
+def test_overrule_numpy_and_torch_agree(monkeypatch):
+    """The recovery rules written with numpy (CPU, no gradient) and with torch give the same maps."""
+    from egorefine.core import dispatch
+    from egorefine.refine.predict import Prediction
+    from egorefine.refine.refiner import _overrule
+    from egorefine.stereo import StereoOutput
+
+    g = torch.Generator().manual_seed(5)
+    shape = (3, 1, 12, 17)
+
+    def maps():
+        return (torch.rand(shape, generator=g) * 9, torch.rand(shape, generator=g),
+                torch.rand(shape, generator=g) > 0.3, torch.randint(0, 3, shape, generator=g).float())
+
+    corrected = maps()
+    p, m = maps(), maps()
+    pred = Prediction(p[0], p[1], ~p[2], p[2], torch.zeros(shape))
+    meas = StereoOutput(m[0], m[2], m[1])
+    keep, restart = torch.tensor([False, True, False]), torch.tensor([False, False, True])
+    regions = torch.rand(shape, generator=g) > 0.5
+    fast = _overrule(corrected, pred, meas, keep, restart, regions)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
+    reference = _overrule(corrected, pred, meas, keep, restart, regions)
+    for a, b in zip(fast, reference, strict=True):
+        assert torch.equal(a, b)
+    assert torch.equal(fast[0][1], pred.disparity[1]) and torch.equal(fast[0][2], meas.disparity[2])
+    take = regions[0]
+    assert torch.equal(fast[0][0][take], meas.disparity[0][take]) and (fast[3][0][take] == 0).all()
+    assert torch.equal(fast[0][0][~take], corrected[0][0][~take])
