@@ -53,6 +53,8 @@ autodoc_default_options = {
 autodoc_typehints = "signature"
 autodoc_class_signature = "mixed"
 autodoc_preserve_defaults = True
+# A module's forward without a docstring of its own shows its signature, not torch's text about nn.Module.forward.
+autodoc_inherit_docstrings = False
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 napoleon_use_rtype = False
