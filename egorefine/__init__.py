@@ -11,6 +11,7 @@ every 3-D point, and correction against fresh stereo every i-th frame.
 from . import core, data, features, geometry, metrics, motion, refine, stereo, viz
 from .refine import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
+#: The package version.
 __version__ = "0.1.0"
 
 __all__ = [

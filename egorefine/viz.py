@@ -70,7 +70,7 @@ def _show(ax, m: torch.Tensor, cmap: str, vmin: float, vmax: float, title: str, 
 
 
 def _colormap(name: str):
-    """A copy of matplotlib's colour map ``name`` whose "bad" (NaN, masked) colour is :data:`INVALID_GREY`."""
+    """A copy of matplotlib's colour map ``name`` whose "bad" (NaN, masked) colour is ``INVALID_GREY``."""
     import matplotlib
 
     return matplotlib.colormaps[name].with_extremes(bad=str(INVALID_GREY))
@@ -95,7 +95,7 @@ def save_maps_figure(
 ) -> Path:
     """The left image, disparity maps with a colour bar each, and (given ``truth``) their error maps.
 
-    Pixels without a value (NaN in a map) are drawn grey (:data:`INVALID_GREY`), never as disparity 0; the error
+    Pixels without a value (NaN in a map) are drawn grey (``INVALID_GREY``), never as disparity 0; the error
     maps are grey where either the map or the truth has none.
 
     Args:
@@ -176,7 +176,7 @@ def save_row_figure(
         row: image row to plot.
         curves: name -> ``(H, W)`` disparity map (``NaN`` where a method has no value: a gap in its curve).
         maps: name -> ``(H, W)`` maps to show as images under the plot (default: ``curves``); NaN pixels are drawn
-            grey (:data:`INVALID_GREY`), and the last map carries the colour bar.
+            grey (``INVALID_GREY``), and the last map carries the colour bar.
         max_disparity: colour scale of the maps, px (default: the largest finite value).
         title: figure title.
 

@@ -170,7 +170,7 @@ def check_image(
 
     ``min_size`` is the smallest height and width the caller's filters work on (default 1).
 
-    Values may stray beyond [0, 1] by :data:`IMAGE_RANGE_TOLERANCE` (noise or augmentation); an image in 0..255
+    Values may stray beyond [0, 1] by ``IMAGE_RANGE_TOLERANCE`` (noise or augmentation); an image in 0..255
     is refused with a message saying how to scale it.
 
     Raises:

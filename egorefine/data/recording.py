@@ -78,7 +78,8 @@ class StereoRecording:
         timestamps: ``(T,)`` float64 seconds, or None where the layout has none.
         poses: ``(T, 4, 4)`` float64 ``world_T_camera`` of the rectified left camera, or None.
         rectified_input: the layout's images were rectified already (no remap).
-        left_files, right_files: the image files, one per frame.
+        left_files: the left camera's image files, one per frame.
+        right_files: the right camera's image files, one per frame.
 
     Indexing (``rec[t]``, negative too) and iteration yield ``(left, right)``, each ``(1, 1, H, W)`` float32 grey
     in [0, 1], rectified; colour frames become grey. ``len(rec)`` is the number of frames.

@@ -453,7 +453,7 @@ def _volume(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
 
 
 def release_workspace() -> None:
-    """Free the work volumes that :func:`census_sgm_select` keeps for the calling thread."""
+    """Free the work volumes that ``census_sgm_select`` keeps for the calling thread."""
     _workspace.arrays = {}
 
 
