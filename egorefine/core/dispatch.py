@@ -5,7 +5,7 @@ torch code is the reference (GPU, autograd, ``torch.compile``), the kernel a fas
 inference on the CPU. A call site never decides for itself; it asks :func:`use_compiled`, which takes the kernel
 only when all of these hold:
 
-* the switch :data:`ENABLED` is on (tests and benchmarks set it False to run every torch path);
+* the switch ``ENABLED`` is on (tests and benchmarks set it False to run every torch path);
 * numba can be imported (:data:`egorefine.core._jit.AVAILABLE`);
 * torch is not tracing or compiling the call: ``torch.compile`` / dynamo and ``torch.export``, ``torch.jit``
   tracing or scripting, ``torch.fx`` symbolic tracing, a functorch transform (``vmap``, ``torch.func.grad``), or a
@@ -94,7 +94,7 @@ def needs_grad(*tensors: torch.Tensor | None) -> bool:
 def use_compiled(*tensors: torch.Tensor | None, dtype: torch.dtype | tuple[torch.dtype, ...] = torch.float32) -> bool:
     """Whether a stage may run its compiled CPU kernel on ``tensors`` instead of its torch path.
 
-    The rule of the module docstring: :data:`ENABLED`, numba importable, torch not tracing or compiling, every
+    The rule of the module docstring: ``ENABLED``, numba importable, torch not tracing or compiling, every
     tensor a plain CPU tensor, every floating-point tensor of ``dtype``, and no gradient wanted through any of
     them. Integer and bool tensors (masks, counts) are checked for device and gradient only; a kernel that
     needs a particular mask dtype says so at its call site.
