@@ -17,6 +17,7 @@ import struct
 from functools import partial
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -276,7 +277,7 @@ def match_stereo(
     differentiable: bool = False,
     temperature: float | None = None,
     soft_radius: int | None = 2,
-    speckle_size: int = 0,
+    speckle_size: int = 100,
     speckle_range: float = 1.0,
 ) -> StereoOutput:
     """Dense stereo matching of a rectified pair; disparity, validity and per-pixel variance.
@@ -304,7 +305,9 @@ def match_stereo(
             (None: the whole range, which multimodal real-image costs bias badly).
         speckle_size, speckle_range: after the checks, invalidate every region of at most ``speckle_size``
             pixels whose 4-neighbours differ by at most ``speckle_range`` px (:func:`remove_speckles`; OpenCV's
-            ``speckleWindowSize`` / ``speckleRange``, typically 100 and 1-2 px; 0: off).
+            ``speckleWindowSize`` / ``speckleRange``; 0: off). The default, 100 px within 1 px, is what OpenCV users
+            run SGBM with: a wrong match on weak texture or sensor noise rarely agrees with its neighbours over a
+            large area, while a surface does (measurements in docs/decisions.md).
 
     Returns:
         :class:`StereoOutput` ``(disparity, valid, variance)``, each ``(B, 1, H, W)``.
@@ -323,6 +326,12 @@ def match_stereo(
                  sgm_p1, sgm_p2, sgm_paths, differentiable, temperature, soft_radius)
     if speckle_size > 0:
         valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
+        if use_compiled(out.disparity, out.variance, valid):  # numpy: no torch pass over the full maps
+            dropped = np.logical_not(valid.numpy())
+            disparity, variance = out.disparity.numpy(), out.variance.numpy()  # (fresh outputs of _match)
+            disparity[dropped] = 0.0
+            variance[dropped] = INVALID_VARIANCE
+            return StereoOutput(out.disparity, valid, out.variance)
         out = StereoOutput(torch.where(valid, out.disparity, torch.zeros_like(out.disparity)), valid,
                            torch.where(valid, out.variance, torch.full_like(out.variance, INVALID_VARIANCE)))
     return out

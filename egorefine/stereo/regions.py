@@ -114,6 +114,7 @@ def _matcher_settings(options: dict) -> dict:
     unknown = set(options) - set(settings)
     if unknown:
         raise ValueRangeError(f"options: not arguments of match_stereo: {sorted(unknown)}")
+    settings["speckle_size"] = 0  # off unless asked for: windows cut the regions the filter sizes
     return {**settings, **options}
 
 
@@ -201,7 +202,7 @@ def match_stereo_regions(
         if windows == boxes:  # every item matched on its boxes: the kernel wrote nothing outside them
             return out
     else:
-        out = match_stereo(grey_l, grey_r, max_disparity, **options)
+        out = match_stereo(grey_l, grey_r, max_disparity, **{**options, "speckle_size": settings["speckle_size"]})
     inside = torch.zeros(B, 1, H, W, dtype=torch.bool, device=left.device)
     for b, item in enumerate(boxes):
         for y0, y1, x0, x1 in item:

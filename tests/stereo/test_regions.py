@@ -63,7 +63,7 @@ def test_boxes_merge_when_one_window_is_cheaper():
 def test_wide_margin_equals_the_full_frame(scene):
     left, right, _ = scene
     mask = _mask(2, *left.shape[-2:])
-    full = match_stereo(left, right, MAX_D)
+    full = match_stereo(left, right, MAX_D, speckle_size=0)  # the regions matcher leaves the filter off
     out = match_stereo_regions(left, right, mask, MAX_D, margin=MAX_D)
     inside = _in_boxes(mask, margin=MAX_D, extra_rows=8)
     assert inside.float().mean() > 0.1
@@ -77,7 +77,7 @@ def test_wide_margin_equals_the_full_frame(scene):
 def test_narrow_margin_differs_only_in_the_left_right_check(scene):
     left, right, truth = scene
     mask = _mask(2, *left.shape[-2:])
-    full = match_stereo(left, right, MAX_D)
+    full = match_stereo(left, right, MAX_D, speckle_size=0)  # the regions matcher leaves the filter off
     out = match_stereo_regions(left, right, mask, MAX_D, margin=8)
     inside = _in_boxes(mask, margin=8, extra_rows=8)
     both = out.valid & full.valid
@@ -96,7 +96,7 @@ def test_other_paths_match_the_whole_frame(scene, path, monkeypatch):
         kwargs = {}
     else:
         kwargs = {"full_fraction": 0.0}  # any window is too much: each item is matched whole
-    full = match_stereo(left, right, MAX_D)
+    full = match_stereo(left, right, MAX_D, speckle_size=0)  # the regions matcher leaves the filter off
     out = match_stereo_regions(left, right, mask, MAX_D, **kwargs)
     inside = _in_boxes(mask, margin=32, extra_rows=8)
     assert torch.equal(out.valid, full.valid & inside)
