@@ -280,7 +280,10 @@ class EgoMotionRefiner(nn.Module):
     ``adaptive=True`` also when the predicted map's coverage or mean confidence drops below
     ``min_coverage`` / ``min_confidence``; and always when the ego-motion of some batch item
     could not be estimated (the output says so in ``stereo_ran`` and ``motion_ok``). Stereo
-    and the schedule act on the whole batch at once.
+    and the schedule act on the whole batch at once. Frames the method does not expect (swapped, covered, black
+    or noise images) are caught by the tests of ``egorefine.refine.health``: a collapse of the tracks counts as a
+    failed motion, stereo that fails wholesale is rejected, regions that disagree with stereo as a whole take it;
+    ``out.status`` says what happened to each item.
 
     Args:
         max_disparity: stereo search range ``[min_disparity, max_disparity)``; predicted values outside it are
