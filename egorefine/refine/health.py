@@ -27,6 +27,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..core.tiles import tile_shares
+
 __all__ = [
     "Status",
     "flag",
@@ -166,25 +168,12 @@ def _disagreeing_regions_torch(predicted: torch.Tensor, predicted_valid: torch.T
         return region.repeat_interleave(tile, -2).repeat_interleave(tile, -1)[..., :H, :W]
 
 
-def _tile_shares(mask: np.ndarray, tile: int) -> np.ndarray:
-    """Share of True pixels in each ``tile`` x ``tile`` block of ``(B, 1, H, W)`` (partial blocks at the far edges
-    count only their own pixels), ``(B, 1, ceil(H / tile), ceil(W / tile))``."""
-    B, C, H, W = mask.shape
-    h, w = -(-H // tile), -(-W // tile)
-    padded = np.zeros((B, C, h * tile, w * tile), dtype=np.float32)
-    padded[..., :H, :W] = mask
-    ones = np.zeros((h * tile, w * tile), dtype=np.float32)
-    ones[:H, :W] = 1.0
-    sums = padded.reshape(B, C, h, tile, w, tile).sum(axis=(3, 5))
-    return sums / ones.reshape(h, tile, w, tile).sum(axis=(1, 3))
-
-
 def _disagreeing_regions_numpy(predicted: np.ndarray, predicted_valid: np.ndarray, measured: np.ndarray,
                                measured_valid: np.ndarray) -> np.ndarray:
     """:func:`disagreeing_regions` in numpy, the same rule."""
     H, W = predicted.shape[-2:]
     both = predicted_valid & measured_valid
     off = both & (np.abs(predicted - measured) > DISAGREEMENT_PX)
-    support, share_off = _tile_shares(both, DISAGREEMENT_TILE), _tile_shares(off, DISAGREEMENT_TILE)
+    support, share_off = tile_shares(both, DISAGREEMENT_TILE), tile_shares(off, DISAGREEMENT_TILE)
     region = (support >= DISAGREEMENT_MIN_SUPPORT) & (share_off > DISAGREEMENT_SHARE * support)
     return np.ascontiguousarray(region.repeat(DISAGREEMENT_TILE, -2).repeat(DISAGREEMENT_TILE, -1)[..., :H, :W])

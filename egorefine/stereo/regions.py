@@ -33,6 +33,7 @@ import torch
 
 from ..core import ValueRangeError, check_shape, to_grey
 from ..core.dispatch import needs_grad
+from ..core.tiles import tile_shares
 from . import _sad_numba, matching
 from .matching import COST_FLOORS, INVALID_VARIANCE, StereoOutput, match_stereo
 
@@ -77,16 +78,8 @@ def mask_boxes(
     """
     check_shape(mask, ["H", "W"], "mask")
     H, W = mask.shape
-    # each tile's share of mask pixels (tiles cut by the image border: of their pixels inside it), in numpy: a
-    # torch pass over the mask would wake torch's OpenMP threads to spin beside the matcher's kernels
-    m = mask.detach().cpu().numpy()
-    th, tw = -(-H // tile), -(-W // tile)
-    counts = np.zeros((th * tile, tw * tile), np.int32)
-    counts[:H, :W] = m
-    counts = counts.reshape(th, tile, tw, tile).sum(axis=(1, 3))
-    rows = np.minimum(tile, H - tile * np.arange(th))[:, None]
-    cols = np.minimum(tile, W - tile * np.arange(tw))[None, :]
-    need = (counts / (rows * cols) >= min_fraction).astype(np.uint8)
+    # each tile's share of mask pixels (tiles cut by the image border: of their pixels inside it)
+    need = (tile_shares(mask.detach().cpu().numpy(), tile) >= min_fraction).astype(np.uint8)
     if not need.any():
         return []
     # needed tiles that touch form one box
