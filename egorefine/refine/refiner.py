@@ -201,20 +201,16 @@ def _overrule(
     disparity, variance, valid, outliers = maps
     tensors = (disparity, variance, outliers, pred.disparity, pred.variance, meas.disparity, meas.variance)
     if use_compiled(*tensors, valid, pred.valid, meas.valid, regions):
-        out = [t.numpy().copy() for t in (disparity, variance, valid, outliers)]
-        take = regions.numpy() & ~keep.numpy()[:, None, None, None]
-        for dst, src in zip(out[:3], (meas.disparity, meas.variance, meas.valid), strict=True):
-            np.copyto(dst, src.numpy(), where=take)
-        out[3][take] = 0
-        for b in np.flatnonzero(keep.numpy()):
-            for dst, src in zip(out[:3], (pred.disparity, pred.variance, pred.valid), strict=True):
-                dst[b] = src[b].numpy()
-            out[3][b] = 0
-        for b in np.flatnonzero(restart.numpy()):
-            for dst, src in zip(out[:3], (meas.disparity, meas.variance, meas.valid), strict=True):
-                dst[b] = src[b].numpy()
-            out[3][b] = 0
-        return tuple(torch.from_numpy(a) for a in out)
+        item_keep, item_restart = keep.numpy()[:, None, None, None], restart.numpy()[:, None, None, None]
+        take = (regions.numpy() & ~item_keep) | item_restart
+
+        def pick_np(corrected, predicted, measured):
+            chosen = np.where(take, measured.numpy(), corrected.numpy())
+            return torch.from_numpy(np.where(item_keep & ~item_restart, predicted.numpy(), chosen))
+
+        return (pick_np(disparity, pred.disparity, meas.disparity), pick_np(variance, pred.variance, meas.variance),
+                pick_np(valid, pred.valid, meas.valid),
+                torch.from_numpy(np.where(take | item_keep, 0, outliers.numpy()).astype(outliers.numpy().dtype)))
     item_keep, item_restart = keep[:, None, None, None], restart[:, None, None, None]
     take = (regions & ~item_keep) | item_restart
 
