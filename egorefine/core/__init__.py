@@ -9,6 +9,7 @@ from .check import (
     check_positive,
     check_same_device,
     check_same_dtype,
+    check_setting,
     check_shape,
     check_variance,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "check_positive",
     "check_same_device",
     "check_same_dtype",
+    "check_setting",
     "check_shape",
     "check_variance",
     "DataError",

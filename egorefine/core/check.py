@@ -36,6 +36,7 @@ __all__ = [
     "check_choice",
     "check_intrinsics",
     "check_variance",
+    "check_setting",
     "IMAGE_RANGE_TOLERANCE",
 ]
 
@@ -245,3 +246,43 @@ def check_choice(value: str, options: Sequence[str], name: str) -> None:
     """Raise :class:`ValueRangeError` unless ``value`` is one of ``options``."""
     if value not in options:
         raise ValueRangeError(f"{name}: expected one of {list(options)}, got {value!r}")
+
+
+def check_setting(value: float | torch.Tensor, name: str) -> float | torch.Tensor:
+    """A scalar setting that may be learnable: a Python number, or a 0-d tensor that gradients should reach.
+
+    Stages whose settings can be :class:`torch.nn.Parameter` s (a gain, a noise level, a temperature) call this
+    once at the door: a tensor that needs no gradient becomes a float (so the compiled kernels and CUDA-graph
+    keys see a plain number), a tensor that does stays a tensor (the stage's torch path then carries its graph).
+    Range checks stay with the caller, which compares the returned value as it would a number.
+
+    Args:
+        value: a number, or a 0-d floating-point tensor.
+        name: the argument's name, for the error.
+
+    Returns:
+        ``float(value)`` where no gradient is wanted through it, else ``value`` itself.
+
+    Raises:
+        ValueRangeError: a tensor that is not 0-d or not finite, or a number that is not finite.
+
+    Example:
+        >>> check_setting(torch.tensor(0.4), "gain")
+        0.4000000059604645
+        >>> check_setting(torch.tensor(0.4, requires_grad=True), "gain")
+        tensor(0.4000, requires_grad=True)
+    """
+    if isinstance(value, torch.Tensor):
+        if value.dim() != 0 or not value.is_floating_point():
+            raise ValueRangeError(f"{name}: expected a number or a 0-d float tensor, got shape "
+                                  f"{tuple(value.shape)} {value.dtype}")
+        if not bool(torch.isfinite(value.detach())):
+            raise ValueRangeError(f"{name}: expected a finite value, got {value.item()}")
+        return value if (torch.is_grad_enabled() and value.requires_grad) else float(value)
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueRangeError(f"{name}: expected a number, got {type(value).__name__}") from None
+    if not np.isfinite(number):
+        raise ValueRangeError(f"{name}: expected a finite value, got {number}")
+    return number

@@ -38,7 +38,16 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..core import check_choice, check_finite, check_float, check_same_device, check_shape, check_variance, use_compiled
+from ..core import (
+    check_choice,
+    check_finite,
+    check_float,
+    check_same_device,
+    check_setting,
+    check_shape,
+    check_variance,
+    use_compiled,
+)
 from ..core.dispatch import needs_grad
 from ..core.errors import ValueRangeError
 from . import _fuse_numba, _predict_numba
@@ -167,6 +176,7 @@ def correct_disparity(
     min_variance: float = 1e-4,
     prior_variance: float = 1.0,
     max_unverified_variance: float | None = None,
+    gate_softness: float | None = None,
 ) -> Correction:
     """Fuse the predicted disparity ``e`` with the measured ``s`` (PAPER.md, loop step 4).
 
@@ -189,6 +199,17 @@ def correct_disparity(
     ``e = s``, ``P = R``, count 0. Measurement invalid: everything carried. ``P`` is kept
     ``>= min_variance``.
 
+    Both gates are hard decisions: the output is piecewise smooth in ``e`` and ``s``, and the gradient says nothing
+    about moving a pixel across a gate. ``gate_softness`` replaces each by a logistic weight, so that gradients see
+    the gate (the differentiable configuration of :class:`~egorefine.refine.EgoMotionRefiner`): in paper mode the
+    correction is applied with weight ``w = sigmoid((|y| - gate) / gate_softness)`` (``gate_softness`` in px); in
+    Kalman mode a pixel is an outlier with weight ``o = sigmoid((|y| - k sqrt(S)) / (gate_softness sqrt(S)))``
+    (``gate_softness`` in standard deviations) and gets ``(1 - o)`` of the fused value plus ``o`` of the outlier
+    value (the measurement once ``reset_after`` is reached, else the prediction). The outlier count still follows
+    the hard gate. As ``gate_softness -> 0`` both rules become the hard ones.
+
+    ``gate``, ``gain`` and ``kalman_gate`` may be 0-d tensors (learnable parameters); gradients then reach them.
+
     Args:
         predicted: ``(B, 1, H, W)`` predicted disparity ``e``, px.
         measured: ``(B, 1, H, W)`` measured disparity ``s``, px.
@@ -206,6 +227,8 @@ def correct_disparity(
         prior_variance: px^2 assumed for the prediction when ``predicted_variance`` is None.
         max_unverified_variance: Kalman mode only: px^2, the largest variance with which a prediction the
             measurement does not cover stays valid (None: no limit, every such prediction stays valid).
+        gate_softness: > 0: the soft gates above (paper: px; Kalman: standard deviations); None (the default): the
+            hard gates of the rules as written.
 
     Returns:
         :class:`Correction` ``(disparity, variance, valid, outlier_count)``, each ``(B, 1, H, W)``.
@@ -244,12 +267,16 @@ def correct_disparity(
         outlier_count=outlier_count,
     )
     check_choice(fusion, ["paper", "kalman"], "fusion")
+    gate, gain, kalman_gate = (check_setting(v, n) for v, n in ((gate, "gate"), (gain, "gain"),
+                                                                  (kalman_gate, "kalman_gate")))
     if not gate >= 0:
         raise ValueRangeError(f"gate: must be >= 0, got {gate}")
     if not 0 < gain <= 1:
         raise ValueRangeError(f"gain: must be in (0, 1], got {gain}")
     if max_unverified_variance is not None and not max_unverified_variance > 0:
         raise ValueRangeError(f"max_unverified_variance: must be > 0 or None, got {max_unverified_variance}")
+    if gate_softness is not None and not gate_softness > 0:
+        raise ValueRangeError(f"gate_softness: must be > 0 or None, got {gate_softness}")
     if not kalman_gate > 0 or reset_after < 1 or not min_variance > 0 or not prior_variance > 0:
         raise ValueRangeError(
             "kalman_gate, min_variance and prior_variance must be > 0 and reset_after >= 1, got "
@@ -259,13 +286,14 @@ def correct_disparity(
     e, s = predicted, measured.to(predicted.dtype)
     carried = [t.to(e.dtype) for t in (predicted_variance, measured_variance, outlier_count) if t is not None]
     kalman = fusion == "kalman"  # (the kernel implements the Kalman rule; the paper rule is a few torch ops)
-    if kalman and use_compiled(e, s, *carried, measured_valid, predicted_valid):
+    settings = [t for t in (gate, gain, kalman_gate) if isinstance(t, torch.Tensor)]
+    if kalman and gate_softness is None and use_compiled(e, s, *carried, measured_valid, predicted_valid, *settings):
         # the same rule compiled: one pass instead of ~20 full-map operations; equal bit for bit (tests)
         P = torch.full_like(e, prior_variance) if predicted_variance is None else predicted_variance.to(e.dtype)
         R = torch.full_like(e, QUANTISATION_VARIANCE) if measured_variance is None else measured_variance.to(e.dtype)
         count = torch.zeros_like(e) if outlier_count is None else outlier_count.to(e.dtype)
         d, var, valid, cnt = _fuse_numba.kalman_fuse(
-            e, s, _as_bool(measured_valid, e), _as_bool(predicted_valid, e), P, R, count, kalman_gate, reset_after,
+            e, s, _as_bool(measured_valid, e), _as_bool(predicted_valid, e), P, R, count, float(kalman_gate), reset_after,
             min_variance, max_unverified_variance)
         return Correction(d, var, valid, cnt if outlier_count is None else cnt.to(outlier_count.dtype))
     m_ok = _as_bool(measured_valid, e)
@@ -282,20 +310,35 @@ def correct_disparity(
 
     if fusion == "paper":
         fire = both & (innovation.abs() > gate)
-        e_new = torch.where(fire, e + gain * innovation, e)  # PAPER.md step 4: e <- e + alpha (s - e)
-        P_new = torch.where(fire, (1 - gain) ** 2 * P + gain**2 * R, P)
+        corrected, corrected_var = e + gain * innovation, (1 - gain) ** 2 * P + gain**2 * R
+        if gate_softness is None:
+            e_new = torch.where(fire, corrected, e)  # PAPER.md step 4: e <- e + alpha (s - e)
+            P_new = torch.where(fire, corrected_var, P)
+        else:  # the gate as a logistic weight of the correction
+            w = torch.sigmoid((innovation.abs() - gate) / gate_softness)
+            e_new = torch.where(both, e + w * gain * innovation, e)
+            P_new = torch.where(both, w * corrected_var + (1 - w) * P, P)
         count_new = torch.where(fire, count + 1, torch.where(both, zero, count))
     else:
         S = P + R  # innovation variance (both > 0 after the clamp)
-        outlier = both & (innovation.abs() > kalman_gate * S.sqrt())
+        bound = kalman_gate * S.sqrt()
+        outlier = both & (innovation.abs() > bound)
         count_out = count + 1
         reset = outlier & (count_out >= reset_after)
-        fuse = both & ~outlier
         G = P / S
-        e_new = torch.where(fuse, e + G * innovation, e)
-        P_new = torch.where(fuse, (1 - G) * P, P)
-        e_new = torch.where(reset, s, e_new)
-        P_new = torch.where(reset, R, P_new)
+        fused, fused_var = e + G * innovation, (1 - G) * P
+        if gate_softness is None:
+            fuse = both & ~outlier
+            e_new = torch.where(fuse, fused, e)
+            P_new = torch.where(fuse, fused_var, P)
+            e_new = torch.where(reset, s, e_new)
+            P_new = torch.where(reset, R, P_new)
+        else:  # outlier as a logistic weight; its value is the measurement once a reset is due, else the prediction
+            o = torch.sigmoid((innovation.abs() - bound) / (gate_softness * S.sqrt()))
+            due = (count_out >= reset_after) & both
+            out_e, out_P = torch.where(due, s, e), torch.where(due, R, P)
+            e_new = torch.where(both, (1 - o) * fused + o * out_e, e)
+            P_new = torch.where(both, (1 - o) * fused_var + o * out_P, P)
         count_new = torch.where(outlier & ~reset, count_out, torch.where(both, zero, count))
 
     e_new = torch.where(take, s, e_new)

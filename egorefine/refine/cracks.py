@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import torch
 
-from ..core import check_shape, use_compiled
+from ..core import check_setting, check_shape, use_compiled
 from . import _predict_numba
 from .predict import Prediction, _pixel_motion
 
@@ -65,7 +65,8 @@ def close_cracks(
         key_disparity, key_variance, key_valid: ``(B, 1, H, W)`` keyframe maps it was predicted from.
         motion: ``(B, 4, 4)`` ``camera_t_T_key``, the motion the prediction used.
         K: ``(B, 3, 3)`` intrinsics; baseline: ``(B,)`` metres.
-        process_noise: variance (px^2) added to looked-up pixels, as the prediction added to splatted ones.
+        process_noise: variance (px^2) added to looked-up pixels, as the prediction added to splatted ones (a
+            number, or a 0-d tensor that gradients reach).
         iterations: inverse-warp steps from the filled start value.
         tolerance: the last step may move the estimate by at most this many px.
         surface_tolerance: the four keyframe neighbours of a look-up must be valid and within this many px.
@@ -88,6 +89,8 @@ def close_cracks(
     dims = check_shape(key_disparity, ["B", "1", "H", "W"], "key_disparity")
     check_shape(prediction.disparity, ["B", "1", "H", "W"], "prediction.disparity", dims)
     check_shape(motion, ["B", "4", "4"], "motion", dims)
+    process_noise = check_setting(process_noise, "process_noise")
+    learnable = [process_noise] if isinstance(process_noise, torch.Tensor) else []
     B, _, H, W = key_disparity.shape
     maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
     key_ok = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
@@ -95,7 +98,7 @@ def close_cracks(
     _, _, G, e = _pixel_motion(motion, K, baseline)
     bool_mask = maps[2].dtype == torch.bool  # (the kernel reads the prediction's mask as bool)
     if bool_mask and use_compiled(*maps, key_disparity, key_variance, key_ok, G.to(torch.float32),
-                                  e.to(torch.float32)):
+                                  e.to(torch.float32), *learnable):
         # the same look-ups compiled (egorefine.refine._predict_numba); None: no hole
         out = _predict_numba.close_cracks(
             *(t[:, 0].contiguous() for t in maps), key_disparity[:, 0], key_variance[:, 0], key_ok[:, 0],
@@ -179,13 +182,15 @@ def finish_prediction(
     decision: piecewise constant).
     """
     low, high = valid_range
+    process_noise = check_setting(process_noise, "process_noise")
+    learnable = [process_noise] if isinstance(process_noise, torch.Tensor) else []
     maps = (prediction.disparity, prediction.variance, prediction.valid, prediction.confidence)
     key_ok = key_valid if key_valid.dtype == torch.bool else key_valid > 0.5
     _, _, G, e = _pixel_motion(motion, K, baseline)
     # the kernel writes the maps in place: they must be contiguous, the mask bool
     writable = maps[2].dtype == torch.bool and all(t.is_contiguous() for t in maps)
     if writable and use_compiled(*maps, key_disparity, key_variance, key_ok, G.to(torch.float32),
-                                 e.to(torch.float32)):
+                                 e.to(torch.float32), *learnable):
         _predict_numba.finish_prediction(
             *(t[:, 0] for t in maps), key_disparity[:, 0], key_variance[:, 0], key_ok[:, 0], G.to(torch.float32),
             e.to(torch.float32), _ITERATIONS if fill_cracks else 0, _TOLERANCE, _SURFACE_TOLERANCE, process_noise,

@@ -85,6 +85,7 @@ from ..core import (
     check_intrinsics,
     check_positive,
     check_same_device,
+    check_setting,
     check_shape,
     check_variance,
     eps_like,
@@ -297,10 +298,12 @@ def predict_disparity(
         variance: ``(B, 1, H, W)`` px^2 of ``disparity``; None means 0.
         valid: ``(B, 1, H, W)`` bool; invalid source pixels are not splatted. None means all.
         mode: ``"hard"`` (z-buffer) or ``"soft"`` (softmax splatting).
-        process_noise: px^2 added to the carried variance per prediction.
+        process_noise: px^2 added to the carried variance per prediction (a number, or a 0-d tensor that
+            gradients reach).
         hole_variance: px^2 given to hole pixels.
         fill_holes: fill holes by the background rule (else 0 there).
-        temperature: px, softness of the softmax splatting (``"soft"`` only); smaller is harder.
+        temperature: px, softness of the softmax splatting (``"soft"`` only); smaller is harder (a number or a
+            0-d tensor).
         refine_iterations: inverse-warp refinement steps (0 keeps the splatted values; one is nearly exact).
         surface_tolerance: px; source disparities within this of the nearest one count as the same
             surface (z-buffer ties, refinement neighbours).
@@ -334,6 +337,8 @@ def predict_disparity(
         if valid.dtype != torch.bool:
             valid = valid > 0.5
     check_same_device(disparity, "disparity", motion=motion, K=K, baseline=baseline, variance=variance, valid=valid)
+    process_noise, temperature = check_setting(process_noise, "process_noise"), check_setting(temperature, "temperature")
+    learnable = [t for t in (process_noise, temperature) if isinstance(t, torch.Tensor)]  # (those needing a gradient)
     if temperature <= 0 or process_noise < 0 or hole_variance <= 0 or surface_tolerance <= 0:
         raise ValueRangeError(
             "temperature, hole_variance and surface_tolerance must be > 0 and process_noise >= 0, got "
@@ -343,11 +348,11 @@ def predict_disparity(
         raise ValueRangeError(f"refine_iterations: must be >= 0, got {refine_iterations}")
 
     # Without gradients (the refiner's loop) intermediate maps are updated in place; with them, out of place.
-    fast = not needs_grad(disparity, motion, K, baseline, variance)
+    fast = not needs_grad(disparity, motion, K, baseline, variance, *learnable)
     # the compiled splat implements hard mode with refinement; it reads every input in the disparity's dtype
     hard_refined = mode == "hard" and refine_iterations > 0
     compiled = hard_refined and use_compiled(
-        disparity, valid, *(t.to(disparity.dtype) for t in (variance, motion, K, baseline) if t is not None))
+        disparity, valid, *learnable, *(t.to(disparity.dtype) for t in (variance, motion, K, baseline) if t is not None))
     if not compiled:
         check_finite(disparity, "disparity")  # (the compiled path tests it inside its kernels)
     settings = (mode, process_noise, hole_variance, fill_holes, temperature, refine_iterations, surface_tolerance)
@@ -451,7 +456,7 @@ def _predict(
         est, _ = fill_holes_background(est[:, None], hole4)
     else:
         est = (est * landed.to(dtype))[:, None]
-    carried = (est_var + process_noise) if est_var is not None else torch.full_like(est, process_noise)[:, 0]
+    carried = (est_var + process_noise) if est_var is not None else est.new_zeros(est[:, 0].shape) + process_noise
     out_var = carried[:, None].masked_fill(hole4, hole_variance)
     confidence = (1.0 + out_var).reciprocal()  # (in place only without autograd: reciprocal keeps its output)
     confidence = confidence.masked_fill_(hole4, 0.0) if fast else confidence.masked_fill(hole4, 0.0)

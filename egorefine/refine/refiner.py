@@ -34,6 +34,7 @@ from ..core import (
     check_image,
     check_intrinsics,
     check_positive,
+    check_setting,
     check_shape,
     progress,
     to_grey,
@@ -43,6 +44,7 @@ from ..features import build_pyramid, replenish, track
 from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
 from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_regions
+from ..stereo.matching import _TEMPERATURES
 from . import _fuse_numba, _predict_numba
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
@@ -71,6 +73,12 @@ _TRACK_LEVELS = 3
 # 1.2 to 3.7 times the cost.
 _HOLE_TILE = 6
 _HOLE_SHARE = 0.5
+
+# the differentiable preset's gate softness (paper mode: px; Kalman mode: standard deviations): a fifth of the
+# paper's 0.5 px gate, so that the soft rule stays close to the hard one away from the gate
+_GATE_SOFTNESS = 0.1
+# a confidence network's variance scale is clamped to this range (a documented clamp: never 0, never Inf)
+_SCALE_RANGE = (1e-3, 1e3)
 
 
 class RefinerState(NamedTuple):
@@ -109,6 +117,28 @@ class RefinerState(NamedTuple):
     frame: int
     since_stereo: int
     pyramid: tuple[torch.Tensor, ...] | None = None
+
+    def detach(self) -> RefinerState:
+        """The same state with every tensor detached from the autograd graph: truncated backpropagation
+        through time. The next frame's outputs then depend on this state's values but gradients stop here.
+
+        Example:
+            >>> import torch
+            >>> x = torch.ones(1, 1, 2, 2, requires_grad=True)
+            >>> eye = torch.eye(4)[None]
+            >>> s = RefinerState(x, x[:, 0, :1], x[:, 0, 0], x * 2, x, x > 0, x, eye, x, x, x > 0, eye, 0, 0, (x,))
+            >>> d = s.detach()
+            >>> d.disparity.requires_grad, d.pyramid[0].requires_grad, s.disparity.requires_grad
+            (False, False, True)
+        """
+        def cut(value):
+            if isinstance(value, torch.Tensor):
+                return value.detach()
+            if isinstance(value, tuple):
+                return tuple(cut(v) for v in value)
+            return value
+
+        return RefinerState(*(cut(v) for v in self))
 
 
 class RefinerOutput(NamedTuple):
@@ -399,7 +429,7 @@ class EgoMotionRefiner(nn.Module):
         min_confidence: float = 0.5,
         max_features: int = 500,
         min_tracks: int = 200,
-        splat: str = "hard",
+        splat: str | None = None,
         min_disparity: int = 0,
         block_size: int | None = None,
         stereo_cost: str | None = None,
@@ -418,11 +448,29 @@ class EgoMotionRefiner(nn.Module):
         measure_holes: bool = False,
         max_hole_variance: float = 0.2,
         hole_background_margin: float | None = 0.5,
+        differentiable: bool = False,
+        learnable: bool = False,
+        confidence_net: nn.Module | None = None,
+        soft_tracking: bool | None = None,
+        gate_softness: float | None = None,
+        temperature: float | None = None,
     ) -> None:
         super().__init__()
         check_choice(fusion, ("paper", "kalman"), "fusion")
         check_choice(motion_method, ("linear", "robust", "exact"), "motion_method")
+        self.differentiable = bool(differentiable)
+        # the differentiable preset: each of its parts unless the caller chose otherwise
+        splat = ("soft" if self.differentiable else "hard") if splat is None else splat
+        soft_tracking = self.differentiable if soft_tracking is None else bool(soft_tracking)
+        if gate_softness is None and self.differentiable:
+            gate_softness = _GATE_SOFTNESS
         check_choice(splat, ("hard", "soft"), "splat")
+        if gate_softness is not None and not float(gate_softness) > 0:
+            raise ValueRangeError(f"gate_softness: expected > 0 or None, got {gate_softness}")
+        if temperature is not None and not float(temperature) > 0:
+            raise ValueRangeError(f"temperature: expected > 0 or None, got {temperature}")
+        if confidence_net is not None and not isinstance(confidence_net, nn.Module):
+            raise ValueRangeError(f"confidence_net: expected an nn.Module or None, got {type(confidence_net).__name__}")
         check_choice(local_search_window, ("fronto", "warped"), "local_search_window")
         if int(verify_every) < 1:
             raise ValueRangeError(f"verify_every: expected an integer >= 1, got {verify_every}")
@@ -457,15 +505,14 @@ class EgoMotionRefiner(nn.Module):
         self.verify_every = int(verify_every)
         self.fusion = fusion
         self.motion_method = motion_method
-        self.gate = float(gate)
-        self.gain = float(gain)
         self.adaptive = bool(adaptive)
         self.min_coverage = float(min_coverage)
         self.min_confidence = float(min_confidence)
         self.max_features = int(max_features)
         self.min_tracks = int(min_tracks)
         self.splat = splat
-        self.process_noise = float(process_noise)
+        self.soft_tracking = soft_tracking
+        self.gate_softness = None if gate_softness is None else float(gate_softness)
         self.kalman_gate = float(kalman_gate)
         self.reset_after = int(reset_after)
         self.fill_cracks = bool(fill_cracks)
@@ -486,6 +533,81 @@ class EgoMotionRefiner(nn.Module):
             }.items()
             if v is not None
         }
+        if self.differentiable:
+            self.stereo_options["differentiable"] = True
+        # The settings learning may change: plain numbers, or (learnable) unconstrained parameters mapped into
+        # their ranges (gain: a logistic of gain_logit; the positive ones: exp of a log), so that no optimiser step
+        # can leave a range.
+        self.learnable = bool(learnable)
+        temperature = float(_TEMPERATURES[self.stereo_options.get("cost", "sad")] if temperature is None
+                            else temperature)
+        fixed = {"gain": float(gain), "gate": float(gate), "process_noise": float(process_noise),
+                 "noise_scale": 1.0, "temperature": temperature}
+        self._fixed = {} if self.learnable else fixed
+        if self.learnable:
+            if not (float(gate) > 0 and float(process_noise) > 0 and float(gain) < 1):
+                raise ValueRangeError(
+                    "learnable=True: gate and process_noise must be > 0 and gain < 1 (their parameters are logs and a "
+                    f"logit), got gate={gate}, process_noise={process_noise}, gain={gain}")
+            self.gain_logit = nn.Parameter(torch.logit(torch.tensor(float(gain))))
+            for name in ("gate", "process_noise", "noise_scale", "temperature"):
+                setattr(self, f"log_{name}", nn.Parameter(torch.tensor(fixed[name]).log()))
+        self.confidence_net = confidence_net
+
+    # -- the settings learning may change ----------------------------------------------------------------------
+    def _value(self, name: str) -> float | torch.Tensor:
+        if not self.learnable:
+            return self._fixed[name]
+        if name == "gain":
+            value = torch.sigmoid(self.gain_logit)
+        else:
+            value = getattr(self, f"log_{name}").exp()
+        return check_setting(value, name)  # (a diverged optimiser step: a typed error, not NaN maps)
+
+    @property
+    def gain(self) -> float | torch.Tensor:
+        """The paper rule's gain in (0, 1] (learnable: ``sigmoid(gain_logit)``, a 0-d tensor)."""
+        return self._value("gain")
+
+    @property
+    def gate(self) -> float | torch.Tensor:
+        """The paper rule's gate, px (learnable: ``exp(log_gate)``)."""
+        return self._value("gate")
+
+    @property
+    def process_noise(self) -> float | torch.Tensor:
+        """Kalman mode's process noise, px^2 per predicted frame (learnable: ``exp(log_process_noise)``)."""
+        return self._value("process_noise")
+
+    @property
+    def noise_scale(self) -> float | torch.Tensor:
+        """Kalman mode's scale of the matcher's measurement variance (1 unless learnable:
+        ``exp(log_noise_scale)``)."""
+        return self._value("noise_scale")
+
+    @property
+    def temperature(self) -> float | torch.Tensor:
+        """The soft-argmin matcher's temperature in cost units (``differentiable=True``; learnable:
+        ``exp(log_temperature)``)."""
+        return self._value("temperature")
+
+    def _variance_scale(self, grey: torch.Tensor, meas: StereoOutput) -> torch.Tensor | float:
+        """The factor of a measurement's variance before fusion: ``noise_scale`` times the confidence network's
+        per-pixel scale (clamped to ``_SCALE_RANGE``)."""
+        scale = self.noise_scale
+        if isinstance(scale, torch.Tensor):
+            scale = scale.to(grey.dtype)
+        if self.confidence_net is None:
+            return scale
+        x = torch.cat([grey, meas.disparity.to(grey.dtype) / self.max_disparity, meas.valid.to(grey.dtype)], dim=1)
+        net = self.confidence_net(x)
+        if not isinstance(net, torch.Tensor) or net.shape != meas.disparity.shape:
+            got = tuple(net.shape) if isinstance(net, torch.Tensor) else type(net).__name__
+            raise ShapeError(f"confidence_net: expected an output of shape {tuple(meas.disparity.shape)} "
+                             f"(B, 1, H, W), got {got}")
+        if not bool(torch.isfinite(net.detach()).all()):
+            raise ValueRangeError("confidence_net: its output holds NaN or Inf")
+        return net.to(grey.dtype).clamp(*_SCALE_RANGE) * scale
 
     # -- checks ------------------------------------------------------------------------------------------------
     def _check_inputs(
@@ -538,11 +660,15 @@ class EgoMotionRefiner(nn.Module):
     def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int, why: str = "verification"):
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
-        return match_stereo(
-            left, right, self.max_disparity, min_disparity=self.min_disparity, **self.stereo_options
-        )
+        return match_stereo(left, right, self.max_disparity, min_disparity=self.min_disparity, **self._matcher())
 
-    def _correct(self, pred, meas, outlier_count: torch.Tensor, verification: bool):
+    def _matcher(self) -> dict:
+        """The matcher's keyword arguments (the soft-argmin's temperature read at call time: it may learn)."""
+        if not self.differentiable:
+            return self.stereo_options
+        return {**self.stereo_options, "temperature": self.temperature}
+
+    def _correct(self, grey, pred, meas, outlier_count: torch.Tensor, verification: bool):
         """Step 4: fuse a measurement (full stereo, or the residual search) into the prediction by ``fusion``.
 
         Kalman mode adds the prediction's depth-edge variance (``edge_aware``); ``max_unverified_variance`` applies
@@ -551,11 +677,15 @@ class EgoMotionRefiner(nn.Module):
         pred_var = pred.variance
         if kalman and self.edge_aware:
             pred_var = edge_variance(pred.disparity, pred.valid, self.edge_kernel, base=pred_var)
+        meas_var = meas.variance
+        if self.learnable or self.confidence_net is not None:
+            meas_var = meas_var * self._variance_scale(grey, meas)
         return correct_disparity(
             pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
-            predicted_variance=pred_var, measured_variance=meas.variance, predicted_valid=pred.valid,
+            predicted_variance=pred_var, measured_variance=meas_var, predicted_valid=pred.valid,
             outlier_count=outlier_count, kalman_gate=self.kalman_gate, reset_after=self.reset_after,
             max_unverified_variance=self.max_unverified_variance if kalman and verification else None,
+            gate_softness=self.gate_softness,
         )
 
     # -- one frame ---------------------------------------------------------------------------------------------
@@ -600,7 +730,7 @@ class EgoMotionRefiner(nn.Module):
         pyramid = tuple(build_pyramid(grey, _TRACK_LEVELS))
         tracked = track(state.image, grey, state.keypoints, state.weights, predicted=expected, levels=_TRACK_LEVELS,
                         prev_pyramid=None if state.pyramid is None else list(state.pyramid),
-                        next_pyramid=list(pyramid), fb_predicted=False, fb_levels=1)
+                        next_pyramid=list(pyramid), fb_predicted=False, fb_levels=1, soft=self.soft_tracking)
         # 2. ego-motion from the tracks (eq. 2, 3), Z from the previous disparity.
         ego = solve_ego_motion(
             state.keypoints,
@@ -624,6 +754,9 @@ class EgoMotionRefiner(nn.Module):
         # let those sub-pixel edge errors random-walk from frame to frame.
         key_motion = motion @ state.key_motion
         steps = state.since_stereo + 1
+        process_noise = self.process_noise
+        if isinstance(process_noise, torch.Tensor):
+            process_noise = process_noise.to(grey.dtype)
         pred = predict_disparity(
             state.key_disparity,
             key_motion,
@@ -632,7 +765,7 @@ class EgoMotionRefiner(nn.Module):
             variance=state.key_variance,
             valid=state.key_valid,
             mode=self.splat,
-            process_noise=self.process_noise * steps,
+            process_noise=process_noise * steps,
         )
         # Holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it (fill_cracks).
         # A predicted value outside the stereo search range cannot be verified by the next stereo run. On the test
@@ -640,7 +773,7 @@ class EgoMotionRefiner(nn.Module):
         # corridor whose truth there is 11 px grows past 100 px within four frames forward, and its large footprint
         # wins the z-buffer): they are not valid, and carry no confidence.
         pred = finish_prediction(pred, state.key_disparity, state.key_variance, state.key_valid, key_motion, K,
-                                 baseline, self.process_noise * steps, self.fill_cracks,
+                                 baseline, process_noise * steps, self.fill_cracks,
                                  (self.min_disparity, self.max_disparity))
         coverage = conf = None
         if self.adaptive:
@@ -658,7 +791,7 @@ class EgoMotionRefiner(nn.Module):
             meas = self._stereo(grey, right, frame, why)
             if frame % self.verify_every != 0:
                 status = status | int(Status.STEREO_FORCED)
-            cor = self._correct(pred, meas, state.outlier_count, verification=True)
+            cor = self._correct(grey, pred, meas, state.outlier_count, verification=True)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             # Stereo that failed wholesale (swapped, black or noise images) is rejected: the prediction stays. Regions
             # where the two disagree as a whole (an occluder, a wrong motion) take the measurement.
@@ -677,7 +810,7 @@ class EgoMotionRefiner(nn.Module):
             meas = match_residual(grey, right, pred.disparity, radius=self.local_search,
                                   block_size=self.local_search_block, prior_valid=pred.valid,
                                   window=self.local_search_window)
-            cor = self._correct(pred, meas, state.outlier_count, verification=False)
+            cor = self._correct(grey, pred, meas, state.outlier_count, verification=False)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             if not measure_holes:  # (the hole step computes it)
                 confidence = _confidence(valid, variance)
@@ -688,7 +821,7 @@ class EgoMotionRefiner(nn.Module):
             hole = torch.from_numpy(np.logical_not(valid.numpy())) if valid.device.type == "cpu" else ~valid
             meas = match_stereo_regions(grey, right, hole, self.max_disparity, tile=_HOLE_TILE,
                                         min_fraction=_HOLE_SHARE,
-                                        min_disparity=self.min_disparity, **self.stereo_options)
+                                        min_disparity=self.min_disparity, **self._matcher())
             disparity, variance, valid, outliers, confidence = _take_hole_measurements(
                 disparity, variance, valid, outliers, meas, pred, self.max_hole_variance, self.hole_background_margin)
         # 5. keep the tracks, top up when they thin out.
