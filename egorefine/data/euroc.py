@@ -30,7 +30,8 @@ from .folder import read_grey
 
 __all__ = ["EurocSequence", "load_euroc", "read_euroc_sensor"]
 
-# Ground-truth and image time stamps closer than this are the same instant (1 ms; frames are 50 ms apart).
+# Ground-truth and image time stamps closer than this are the same instant: a millisecond, far below the
+# cameras' frame interval (20 Hz).
 _TIME_TOLERANCE_NS = 1_000_000
 
 
