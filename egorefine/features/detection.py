@@ -305,11 +305,18 @@ def _compiled_applies(image: torch.Tensor, response: str) -> bool:
 
 
 class Detector(torch.nn.Module):
-    """Module form of :func:`detect`; stores the settings, ``forward(image) -> (keypoints, weights)``.
+    """Module form of :func:`detect`: stores the settings; ``forward(image) -> (keypoints, weights)``.
 
-    >>> kp, w = Detector(max_features=20, grid=(2, 2))(torch.rand(1, 1, 48, 48))
-    >>> kp.shape
-    torch.Size([1, 20, 2])
+    Args:
+        max_features, grid, response, nms_radius, quality, min_response, border, subpixel, k: as in :func:`detect`,
+            with its defaults (checked here, at construction).
+
+    ``forward(image)``: ``(B, 1|3, H, W)`` in [0, 1] -> keypoints ``(B, N, 2)`` and weights ``(B, N)``.
+
+    Example:
+        >>> kp, w = Detector(max_features=20, grid=(2, 2))(torch.rand(1, 1, 48, 48))
+        >>> kp.shape
+        torch.Size([1, 20, 2])
     """
 
     def __init__(

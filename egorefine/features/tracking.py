@@ -241,20 +241,30 @@ def track(
         keypoints: ``(B, N, 2)`` (x, y) pixel positions in ``prev``.
         weights: ``(B, N)`` weights; 0 (or less) marks an empty slot (not tracked, returned with weight 0).
         predicted: ``(B, N, 2)`` expected positions in ``next`` to centre the search on, or None.
-        patch_size: odd side of the square template.
-        search_radius: search radius on the coarsest level (px of that level).
-        refine_radius: search radius on the finer levels.
-        levels: pyramid levels (1 = no pyramid).
+        patch_size: odd side of the square template in px; default 9, large enough for a distinctive ZNCC
+            and small enough to stay on one surface.
+        search_radius: search radius on the coarsest level (px of that level); default 6, which with the
+            default levels reaches about 30 px on level 0.
+        refine_radius: search radius on the finer levels; default 2, covering the coarser level's sub-pixel
+            error after doubling with room to spare.
+        levels: pyramid levels (1 = no pyramid); default 3.
         cost: ``"zncc"`` (default), ``"ssd"`` or ``"sad"`` (slower: no convolution form).
-        fb_check: run the forward-backward consistency check.
-        fb_threshold: largest round-trip error in px.
-        min_score: smallest ZNCC accepted (``cost="zncc"`` only), or None.
-        min_texture: smallest standard deviation of the template (intensity units).
-        soft: differentiable soft-argmax last step.
-        temperature: softmax temperature of the soft step (cost units).
-        lk_iters: Lucas-Kanade polish iterations on level 0 (0: the parabola's estimate as is).
+        fb_check: run the forward-backward consistency check (default: wrong matches are what biases the
+            motion solve).
+        fb_threshold: largest round-trip error in px; default 1.0, a right match comes back to within a
+            fraction of a pixel.
+        min_score: smallest ZNCC accepted (``cost="zncc"`` only), or None; default 0.7, a patch that still
+            looks like its template under noise and small viewpoint change.
+        min_texture: smallest standard deviation of the template (intensity units); default 0.01, about
+            2.5 grey levels of an 8-bit image: a flatter patch gives no stable match.
+        soft: differentiable soft-argmax last step (default off: the hard step is what inference wants).
+        temperature: softmax temperature of the soft step (cost units); default 0.02.
+        lk_iters: Lucas-Kanade polish iterations on level 0 (0: the parabola's estimate as is); default 1,
+            the first step removes most of the parabola's bias.
         predicted_radius: with ``predicted``, the level-0 radius of the first search around it
-            (None: always the full coarse-to-fine search). Ignored without ``predicted``.
+            (None: always the full coarse-to-fine search); default 2 px: a small window, so a right
+            prediction costs one cheap level-0 search and a wrong one is sent on to the full search.
+            Ignored without ``predicted``.
         fb_predicted: run the forward-backward check also on the features found by that search
             around the prediction; False lets the prediction's agreement stand in for the check
             there (cheaper; the check then runs only on the features the full search found).
@@ -276,10 +286,11 @@ def track(
         ShapeError: shapes of images, keypoints, weights, predicted or a given pyramid disagree.
         ValueRangeError: NaN/Inf in the inputs, a bad setting or a pyramid with too few levels.
 
-    >>> img = torch.rand(1, 1, 48, 64)
-    >>> out = track(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1))
-    >>> out.keypoints.shape, out.weights.shape
-    (torch.Size([1, 1, 2]), torch.Size([1, 1]))
+    Example:
+        >>> img = torch.rand(1, 1, 48, 64)
+        >>> out = track(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1))
+        >>> out.keypoints.shape, out.weights.shape
+        (torch.Size([1, 1, 2]), torch.Size([1, 1]))
     """
     dims = check_shape(prev, ["B", "1|3", "H", "W"], "prev")
     check_shape(next, ["B", "1|3", "H", "W"], "next", dims)
@@ -458,13 +469,20 @@ def _track_live(
 
 
 class Tracker(torch.nn.Module):
-    """Module form of :func:`track`; stores the settings.
+    """Module form of :func:`track`: stores the settings; ``forward`` calls the function.
 
-    ``forward(prev, next, keypoints, weights, predicted=None, prev_pyramid=None, next_pyramid=None) -> TrackOutput``.
+    Args:
+        patch_size, search_radius, refine_radius, levels, cost, fb_check, fb_threshold, min_score, min_texture, soft,
+        temperature, lk_iters, predicted_radius, fb_predicted, fb_levels: as in :func:`track`, with its defaults
+        (checked here, at construction).
 
-    >>> img = torch.rand(1, 1, 48, 64)
-    >>> Tracker(levels=2)(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1)).keypoints.shape
-    torch.Size([1, 1, 2])
+    ``forward(prev, next, keypoints, weights, predicted=None, prev_pyramid=None, next_pyramid=None) -> TrackOutput``,
+    shapes as in :func:`track`.
+
+    Example:
+        >>> img = torch.rand(1, 1, 48, 64)
+        >>> Tracker(levels=2)(img, img, torch.tensor([[[20.0, 24.0]]]), torch.ones(1, 1)).keypoints.shape
+        torch.Size([1, 1, 2])
     """
 
     def __init__(

@@ -630,11 +630,21 @@ def solve_ego_motion(
 class EgoMotionSolver(nn.Module):
     """Module form of :func:`solve_ego_motion`: stores the method and settings; ``forward`` calls the function.
 
-    >>> from egorefine.geometry import make_intrinsics
-    >>> solver = EgoMotionSolver(method="robust")
-    >>> pts = torch.rand(1, 30, 2) * 300
-    >>> solver(pts, pts, torch.full((1, 30), 8.0), make_intrinsics(400.0, 150.0, 150.0), torch.ones(1)).twist.shape
-    torch.Size([1, 6])
+    Args:
+        method: ``"exact"`` (default: the linear solve of eq. (3) is biased by its first-order model on finite
+            steps), ``"robust"`` or ``"linear"`` (the paper's).
+        min_features, loss, scale, ransac_hypotheses, ransac_threshold, iterations, seed, rcond: as in
+            :func:`solve_ego_motion`, with its defaults.
+
+    ``forward(points_prev, points_next, disparity_prev, K, baseline, weights=None, valid_prev=None) -> EgoMotion``,
+    shapes as in :func:`solve_ego_motion`.
+
+    Example:
+        >>> from egorefine.geometry import make_intrinsics
+        >>> solver = EgoMotionSolver(method="robust")
+        >>> pts = torch.rand(1, 30, 2) * 300
+        >>> solver(pts, pts, torch.full((1, 30), 8.0), make_intrinsics(400.0, 150.0, 150.0), torch.ones(1)).twist.shape
+        torch.Size([1, 6])
     """
 
     def __init__(
