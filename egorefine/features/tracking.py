@@ -472,9 +472,9 @@ class Tracker(torch.nn.Module):
     """Module form of :func:`track`: stores the settings; ``forward`` calls the function.
 
     Args:
-        patch_size, search_radius, refine_radius, levels, cost, fb_check, fb_threshold, min_score, min_texture, soft,
-        temperature, lk_iters, predicted_radius, fb_predicted, fb_levels: as in :func:`track`, with its defaults
-        (checked here, at construction).
+        patch_size, search_radius, refine_radius, levels, cost, fb_check, fb_threshold: as in :func:`track`.
+        min_score, min_texture, soft, temperature, lk_iters, predicted_radius, fb_predicted, fb_levels: as in
+            :func:`track`, with its defaults; all settings are checked here, at construction.
 
     ``forward(prev, next, keypoints, weights, predicted=None, prev_pyramid=None, next_pyramid=None) -> TrackOutput``,
     shapes as in :func:`track`.
