@@ -54,10 +54,22 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def epe(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """End-point error: mean ``|pred - gt|`` in pixels over ``mask``.
+    """End-point error: the mean absolute disparity error ``|pred - gt|`` in pixels over the scored pixels.
 
-    >>> epe(torch.tensor([1.0, 2.0, 4.0]), torch.tensor([1.5, 2.0, 3.0]))
-    tensor(0.5000)
+    The standard stereo accuracy figure (Middlebury, KITTI). Pixels where ``gt`` or ``pred`` is not finite are never
+    scored; an empty selection gives NaN, so "no pixel to score" cannot read as a perfect 0.
+
+    Args:
+        pred: ``(B, 1, H, W)`` (or any shape) predicted disparity in pixels, float.
+        gt: true disparity, the shape of ``pred``.
+        mask: bool, the shape of ``pred``: the pixels to score; default every pixel with a finite ``gt``.
+
+    Returns:
+        0-dim tensor, differentiable with respect to ``pred``.
+
+    Example:
+        >>> epe(torch.tensor([1.0, 2.0, 4.0]), torch.tensor([1.5, 2.0, 3.0]))
+        tensor(0.5000)
     """
     err, mask = _prepare(pred, gt, mask)
     return _masked_mean(err, mask)
@@ -66,37 +78,101 @@ def epe(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) 
 def bad_pixel_rate(
     pred: torch.Tensor, gt: torch.Tensor, threshold: float, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Fraction (0..1) of scored pixels with ``|pred - gt| > threshold`` (bad-0.5, bad-1, bad-2 ...).
+    """Share of the scored pixels whose error ``|pred - gt|`` exceeds ``threshold`` px (bad-0.5, bad-1, bad-2 ...).
 
-    >>> bad_pixel_rate(torch.tensor([1.0, 2.0, 4.0]), torch.tensor([1.5, 2.0, 3.0]), 0.75)
-    tensor(0.3333)
+    Args:
+        pred: ``(B, 1, H, W)`` (or any shape) predicted disparity in pixels.
+        gt: true disparity, the shape of ``pred``.
+        threshold: error in pixels above which a pixel counts as bad; sub-pixel methods are judged at 0.5 or 1,
+            pixel-accurate ones at 2 or 3.
+        mask: bool, the shape of ``pred``: the pixels to score; default every pixel with a finite ``gt``.
+
+    Returns:
+        0-dim tensor in [0, 1] (NaN when nothing is scored).
+
+    Example:
+        >>> bad_pixel_rate(torch.tensor([1.0, 2.0, 4.0]), torch.tensor([1.5, 2.0, 3.0]), 0.75)
+        tensor(0.3333)
     """
     err, mask = _prepare(pred, gt, mask)
     return _masked_mean(((err > threshold) & mask).to(err.dtype), mask)
 
 
 def d1_error(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """KITTI D1: fraction of pixels whose error exceeds both 3 px and 5 % of the true disparity."""
+    """KITTI's D1 outlier rate: the share of scored pixels whose error exceeds both 3 px and 5 % of the true disparity.
+
+    The relative term forgives large errors on near surfaces (large disparities), as the KITTI 2015 benchmark does.
+
+    Args:
+        pred: ``(B, 1, H, W)`` (or any shape) predicted disparity in pixels.
+        gt: true disparity, the shape of ``pred``.
+        mask: bool, the shape of ``pred``: the pixels to score; default every pixel with a finite ``gt``.
+
+    Returns:
+        0-dim tensor in [0, 1] (NaN when nothing is scored).
+
+    Example:
+        >>> d1_error(torch.tensor([10.0, 100.0]), torch.tensor([14.0, 96.0]))  # 4 px is over 5 % of 14, not of 96
+        tensor(0.5000)
+    """
     err, mask = _prepare(pred, gt, mask)
     outlier = (err > 3.0) & (err > 0.05 * gt.abs()) & mask
     return _masked_mean(outlier.to(err.dtype), mask)
 
 
 def rmse(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Root-mean-square disparity error over ``mask``."""
+    """Root-mean-square disparity error in pixels over the scored pixels (weighs large errors more than :func:`epe`).
+
+    Args:
+        pred: ``(B, 1, H, W)`` (or any shape) predicted disparity in pixels.
+        gt: true disparity, the shape of ``pred``.
+        mask: bool, the shape of ``pred``: the pixels to score; default every pixel with a finite ``gt``.
+
+    Returns:
+        0-dim tensor (NaN when nothing is scored).
+
+    Example:
+        >>> rmse(torch.tensor([1.0, 3.0]), torch.tensor([1.0, 1.0]))
+        tensor(1.4142)
+    """
     err, mask = _prepare(pred, gt, mask)
     return _masked_mean(err * err, mask).sqrt()
 
 
 def median_error(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Median ``|pred - gt|`` over ``mask`` (NaN when nothing is scored)."""
+    """Median absolute disparity error ``|pred - gt|`` in pixels over the scored pixels: robust to a few gross errors.
+
+    Args:
+        pred: ``(B, 1, H, W)`` (or any shape) predicted disparity in pixels.
+        gt: true disparity, the shape of ``pred``.
+        mask: bool, the shape of ``pred``: the pixels to score; default every pixel with a finite ``gt``.
+
+    Returns:
+        0-dim tensor (NaN when nothing is scored).
+
+    Example:
+        >>> median_error(torch.tensor([1.0, 2.0, 9.0]), torch.tensor([1.5, 2.0, 3.0]))
+        tensor(0.5000)
+    """
     err, mask = _prepare(pred, gt, mask)
     sel = err[mask]
     return sel.median() if sel.numel() else torch.full((), float("nan"), dtype=err.dtype, device=err.device)
 
 
 def density(valid: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """Fraction of pixels in ``mask`` (default: all) that ``valid`` marks as having a disparity."""
+    """Share of the pixels in ``mask`` that ``valid`` marks as having a disparity.
+
+    Args:
+        valid: ``(B, 1, H, W)`` (or any shape) bool (or 0/1): where the method gives a value.
+        mask: bool, the shape of ``valid``: the pixels that count, e.g. those with ground truth; default all.
+
+    Returns:
+        0-dim float tensor in [0, 1] (NaN when ``mask`` is empty).
+
+    Example:
+        >>> density(torch.tensor([True, False, True, True]))
+        tensor(0.7500)
+    """
     valid = valid.bool()
     mask = torch.ones_like(valid) if mask is None else mask.bool()
     return _masked_mean((valid & mask).float(), mask)
@@ -109,13 +185,28 @@ def evaluate_disparity(
     gt_mask: torch.Tensor | None = None,
     thresholds: tuple[float, ...] = (0.5, 1.0, 2.0, 3.0),
 ) -> dict[str, float]:
-    """All disparity metrics at once, as Python floats.
+    """All disparity metrics of one prediction at once, as Python floats.
 
-    Errors are scored on ``valid & gt_mask`` (the pixels the method claims, where truth
-    exists); ``density`` is the fraction of ``gt_mask`` pixels the method marks valid.
+    Errors are scored on ``valid & gt_mask`` (the pixels the method claims, where truth exists); ``density`` is the
+    share of the ``gt_mask`` pixels that the method marks valid, so a method cannot improve its errors unseen by
+    dropping hard pixels.
+
+    Args:
+        pred: ``(B, 1, H, W)`` (or any shape) predicted disparity in pixels.
+        gt: true disparity, the shape of ``pred``.
+        valid: bool, the shape of ``pred``: the method's own valid mask; default all pixels.
+        gt_mask: bool, the shape of ``pred``: where truth exists; default where ``gt`` is finite and > 0 (KITTI's
+            and the renderer's convention for "no truth").
+        thresholds: the bad-x thresholds in pixels; default 0.5, 1, 2 and 3 px, from sub-pixel to KITTI's accuracy.
 
     Returns:
-        ``{"epe", "median", "rmse", "d1", "bad-0.5", "bad-1", ..., "density"}``.
+        ``{"epe", "median", "rmse", "d1", "bad-0.5", "bad-1", "bad-2", "bad-3", "density"}`` (one ``bad-x`` key per
+        threshold, named with ``{x:g}``).
+
+    Example:
+        >>> m = evaluate_disparity(torch.tensor([[1.0, 2.0], [4.0, 9.0]]), torch.tensor([[1.5, 2.0], [3.0, 0.0]]))
+        >>> sorted(m), m["epe"], m["density"]  # the pixel without truth (gt 0) is not scored
+        (['bad-0.5', 'bad-1', 'bad-2', 'bad-3', 'd1', 'density', 'epe', 'median', 'rmse'], 0.5, 1.0)
     """
     gt_mask = torch.isfinite(gt) & (gt > 0) if gt_mask is None else gt_mask.bool()
     valid = torch.ones_like(gt_mask) if valid is None else valid.bool()
@@ -133,10 +224,22 @@ def evaluate_disparity(
 
 
 def distinct_levels(values: torch.Tensor, resolution: float = 1e-3) -> int:
-    """Number of distinct values (to ``resolution``) in ``values``: the depth layers along a row.
+    """Number of distinct values, to ``resolution``, in ``values``: the depth layers along a row of a disparity map.
 
-    >>> distinct_levels(torch.tensor([3.0, 3.0, 4.0, 4.0, 3.5]))
-    3
+    A pixel-accurate matcher gives few levels on a slanted surface, a sub-pixel one many: a plain count of what the
+    paper's figures show as staircases.
+
+    Args:
+        values: any shape; flattened.
+        resolution: values closer than this (after rounding to multiples of it) count as one level; default
+            1e-3 px, far below any sub-pixel step a matcher resolves.
+
+    Returns:
+        Python int.
+
+    Example:
+        >>> distinct_levels(torch.tensor([3.0, 3.0, 4.0, 4.0, 3.5]))
+        3
     """
     return int(torch.unique(torch.round(values.flatten() / resolution)).numel())
 
@@ -146,13 +249,25 @@ def temporal_consistency(
 ) -> torch.Tensor:
     """Mean absolute frame-to-frame change of the error, ``|e_t - e_{t-1}|`` with ``e = pred - gt``.
 
-    A method whose error flickers from frame to frame scores high even at a low EPE. It is
-    computed on the error, not the disparity, so that true scene motion is not penalised.
+    A method whose error flickers from frame to frame scores high even at a low EPE. It is computed on the error, not
+    the disparity, so that true scene motion is not penalised.
 
     Args:
-        disparity: ``(T, ...)`` a sequence of disparity maps.
-        gt: ``(T, ...)`` ground truth.
-        mask: ``(T, ...)`` pixels to score (both frames of a pair must be in it).
+        disparity: ``(T, ...)`` a sequence of disparity maps, ``T >= 2``, e.g. ``(T, B, 1, H, W)``.
+        gt: ``(T, ...)`` ground truth, the shape of ``disparity``.
+        mask: ``(T, ...)`` bool, pixels to score (both frames of a pair must be in it); default where the error is
+            finite.
+
+    Returns:
+        0-dim tensor in pixels (NaN when no pair is scored).
+
+    Raises:
+        ShapeError: shapes differ or ``T < 2``.
+
+    Example:
+        >>> gt = torch.ones(3, 1, 2, 2)
+        >>> temporal_consistency(gt + torch.tensor([0.0, 0.5, 0.5]).view(3, 1, 1, 1), gt)  # one jump of 0.5 px
+        tensor(0.2500)
     """
     if disparity.shape != gt.shape or disparity.shape[0] < 2:
         raise ShapeError(f"disparity: expected (T>=2, ...) matching gt {tuple(gt.shape)}, got {tuple(disparity.shape)}")
@@ -164,14 +279,41 @@ def temporal_consistency(
 
 
 def translation_error(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """Norm of the translation difference of rigid motions ``(B, 4, 4)``, per item ``(B,)``, in metres."""
+    """Norm of the difference of the translations of rigid motions, per item, in metres.
+
+    Args:
+        est: ``(B, 4, 4)`` estimated motions (or poses).
+        gt: ``(B, 4, 4)`` true ones.
+
+    Returns:
+        ``(B,)`` metres.
+
+    Example:
+        >>> gt = torch.eye(4)[None]; est = gt.clone(); est[0, :3, 3] = torch.tensor([0.3, 0.0, 0.4])
+        >>> translation_error(est, gt)
+        tensor([0.5000])
+    """
     check_shape(est, ["B", "4", "4"], "est")
     check_shape(gt, ["B", "4", "4"], "gt", {"B": est.shape[0]})
     return (est[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1)
 
 
 def rotation_error_deg(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """Angle of ``R_est^T R_gt`` in degrees, per item ``(B,)``."""
+    """Angle of the rotation ``R_est^T R_gt`` between estimated and true motions, per item, in degrees.
+
+    Args:
+        est: ``(B, 4, 4)`` estimated motions (or poses); only the rotation blocks are read.
+        gt: ``(B, 4, 4)`` true ones.
+
+    Returns:
+        ``(B,)`` degrees in [0, 180].
+
+    Example:
+        >>> from egorefine.geometry import se3_exp
+        >>> turn = se3_exp(torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.1, 0.0]], dtype=torch.float64))  # 0.1 rad about y
+        >>> rotation_error_deg(turn, torch.eye(4, dtype=torch.float64)[None]).round(decimals=4)
+        tensor([5.7296], dtype=torch.float64)
+    """
     check_shape(est, ["B", "4", "4"], "est")
     check_shape(gt, ["B", "4", "4"], "gt", {"B": est.shape[0]})
     rel = est[:, :3, :3].transpose(1, 2) @ gt[:, :3, :3]
@@ -182,13 +324,21 @@ def rotation_error_deg(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
 
 def compose_motions(motions: torch.Tensor) -> torch.Tensor:
-    """Poses ``camera_0_T_camera_t`` ``(T, 4, 4)`` from per-frame motions ``camera_t_T_camera_{t-1}`` ``(T, 4, 4)``.
+    """Poses ``camera_0_T_camera_t`` from per-frame motions ``camera_t_T_camera_{t-1}``, chained from the first frame.
 
     ``motions[0]`` is ignored (the first frame is the origin), as the refiner returns the identity there.
 
-    >>> step = torch.eye(4).repeat(3, 1, 1); step[:, 2, 3] = -0.1  # static points come 0.1 m closer
-    >>> compose_motions(step)[:, 2, 3]  # so the camera moved 0.1 m forward each frame
-    tensor([0.0000, 0.1000, 0.2000])
+    Args:
+        motions: ``(T, 4, 4)`` per-frame rigid motions, e.g. one batch item of the ``motion`` of
+            :func:`egorefine.refine.refine_sequence`.
+
+    Returns:
+        ``(T, 4, 4)`` poses; ``poses[0]`` is the identity.
+
+    Example:
+        >>> step = torch.eye(4).repeat(3, 1, 1); step[:, 2, 3] = -0.1  # static points come 0.1 m closer
+        >>> compose_motions(step)[:, 2, 3]  # so the camera moved 0.1 m forward each frame
+        tensor([0.0000, 0.1000, 0.2000])
     """
     check_shape(motions, ["T", "4", "4"], "motions")
     poses = [torch.eye(4, dtype=motions.dtype, device=motions.device)]
@@ -198,14 +348,21 @@ def compose_motions(motions: torch.Tensor) -> torch.Tensor:
 
 
 def motions_from_poses(poses: torch.Tensor) -> torch.Tensor:
-    """Per-frame motions ``camera_t_T_camera_{t-1}`` ``(T, 4, 4)`` from poses ``world_T_camera_t`` ``(T, 4, 4)``.
+    """Per-frame motions ``camera_t_T_camera_{t-1}`` from poses ``world_T_camera_t``.
 
     The inverse of :func:`compose_motions` (up to the first pose, which it cannot recover): ``motions[0]`` is the
     identity, ``motions[t] = inv(poses[t]) @ poses[t - 1]``.
 
-    >>> step = torch.eye(4).repeat(3, 1, 1); step[:, 2, 3] = -0.1
-    >>> torch.allclose(motions_from_poses(compose_motions(step))[1:], step[1:])
-    True
+    Args:
+        poses: ``(T, 4, 4)`` rigid poses ``world_T_camera``.
+
+    Returns:
+        ``(T, 4, 4)`` motions.
+
+    Example:
+        >>> step = torch.eye(4).repeat(3, 1, 1); step[:, 2, 3] = -0.1
+        >>> torch.allclose(motions_from_poses(compose_motions(step))[1:], step[1:])
+        True
     """
     check_shape(poses, ["T", "4", "4"], "poses")
     first = torch.eye(4, dtype=poses.dtype, device=poses.device)[None]
@@ -213,10 +370,20 @@ def motions_from_poses(poses: torch.Tensor) -> torch.Tensor:
 
 
 def relative_pose_error(est: torch.Tensor, gt: torch.Tensor) -> dict[str, float]:
-    """RPE over consecutive frames of per-frame motions ``(T, 4, 4)`` (``t = 0`` skipped).
+    """Relative pose error (RPE) of per-frame motions over consecutive frames, ``t = 0`` skipped.
+
+    Args:
+        est: ``(T, 4, 4)`` estimated motions ``camera_t_T_camera_{t-1}``.
+        gt: ``(T, 4, 4)`` true motions of the same frames.
 
     Returns:
-        ``{"translation_rmse_m", "translation_median_m", "rotation_mean_deg", "rotation_median_deg"}``.
+        ``{"translation_rmse_m", "translation_median_m", "rotation_mean_deg", "rotation_median_deg"}`` as Python
+        floats.
+
+    Example:
+        >>> gt = torch.eye(4).repeat(3, 1, 1); est = gt.clone(); est[2, 0, 3] = 0.2
+        >>> relative_pose_error(est, gt)["translation_median_m"]  # errors 0 and 0.2 m
+        0.0
     """
     check_shape(est, ["T", "4", "4"], "est")
     check_shape(gt, ["T", "4", "4"], "gt", {"T": est.shape[0]})
@@ -231,10 +398,25 @@ def relative_pose_error(est: torch.Tensor, gt: torch.Tensor) -> dict[str, float]
 
 
 def absolute_trajectory_error(est_poses: torch.Tensor, gt_poses: torch.Tensor, align: bool = True) -> float:
-    """ATE: RMSE (metres) of camera positions ``(T, 4, 4)`` after a rigid alignment of ``est`` onto ``gt``.
+    """Absolute trajectory error (ATE): RMSE in metres of camera positions after a rigid alignment onto ``gt``.
 
-    The alignment is the least-squares rotation and translation (Kabsch/Umeyama without scale: a stereo
-    rig measures metric scale, so scale is not fitted away). ``align=False`` compares the raw positions.
+    The alignment is the least-squares rotation and translation (Kabsch/Umeyama without scale: a stereo rig measures
+    metric scale, so scale is not fitted away).
+
+    Args:
+        est_poses: ``(T, 4, 4)`` estimated poses ``world_T_camera``.
+        gt_poses: ``(T, 4, 4)`` true poses of the same frames.
+        align: fit the rigid alignment first (default: the estimate's world frame is arbitrary); False compares the
+            raw positions.
+
+    Returns:
+        Python float, metres.
+
+    Example:
+        >>> gt = torch.eye(4).repeat(3, 1, 1); gt[:, 0, 3] = torch.tensor([0.0, 1.0, 2.0])
+        >>> est = gt.clone(); est[:, 1, 3] = 5.0  # the same path, shifted: aligned away
+        >>> round(absolute_trajectory_error(est, gt), 6), round(absolute_trajectory_error(est, gt, align=False), 6)
+        (0.0, 5.0)
     """
     check_shape(est_poses, ["T", "4", "4"], "est_poses")
     check_shape(gt_poses, ["T", "4", "4"], "gt_poses", {"T": est_poses.shape[0]})

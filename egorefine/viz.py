@@ -31,8 +31,12 @@ def colorize_disparity(
         valid: same shape, bool; pixels that are False get ``invalid_color`` (default: all valid).
         invalid_color: RGB of invalid pixels; black by default, ``egorefine run`` previews use grey.
 
-    >>> colorize_disparity(torch.ones(4, 5), 8.0).shape
-    (4, 5, 3)
+    Returns:
+        ``(H, W, 3)`` uint8 RGB array (OpenCV's turbo map, in RGB order).
+
+    Example:
+        >>> colorize_disparity(torch.ones(4, 5), 8.0).shape
+        (4, 5, 3)
     """
     d = disparity.detach().float().cpu().reshape(disparity.shape[-2:]).numpy()
     scaled = np.clip(d / max(max_disparity, 1e-6) * 255.0, 0, 255).astype(np.uint8)

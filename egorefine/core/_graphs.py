@@ -2,7 +2,7 @@
 recursion and the prediction's hard splat.
 
 On a GPU these are hundreds to thousands of small kernels whose launches, not their arithmetic,
-set the time (about 20 us of host time each, against ~2 us of GPU time). A CUDA graph records
+set the time (each launch costs the host many times what its kernel costs the GPU). A CUDA graph records
 the launches of one call once and replays them with a single launch. A graph is recorded per
 key (the caller's shapes and settings) on the first call and replayed on the next ones: the
 inputs are copied into the recorded ones, and the outputs are copies of the recorded outputs.

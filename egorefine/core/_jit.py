@@ -47,8 +47,8 @@ class Workers:
     """A pool of ``threads`` Python threads for nogil kernels (none for one thread); ``map`` is a barrier.
 
     Threads rather than numba's ``parallel=True``, whose threading layer can clash with torch's OpenMP. The pools
-    are kept per thread count for the process's lifetime (starting threads on every call cost ~0.3 ms of a ~3 ms
-    splat), and per process: a child forked from this one (a ``DataLoader`` worker) has none of the parent's
+    are kept per thread count for the process's lifetime (starting threads on every call costs a sizeable share of
+    a kernel call), and per process: a child forked from this one (a ``DataLoader`` worker) has none of the parent's
     threads, so it starts its own pool instead of waiting on one whose threads do not exist there.
     """
 

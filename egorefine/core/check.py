@@ -60,15 +60,28 @@ def check_shape(
 ) -> dict[str, int]:
     """Check that ``x`` has the named shape ``dims`` and return the name -> size bindings.
 
+    A name binds on its first appearance and must match everywhere it appears again, in this call or in later calls
+    that pass the same ``bound``: that is how ``left`` and ``right`` are held to one ``(B, H, W)``.
+
     Args:
         x: the tensor to check.
-        dims: one entry per dimension: a name, a number, alternatives ``"1|3"`` or ``"*"``.
+        dims: one entry per dimension: a name (``"B"``), a number (``"1"``), alternatives (``"1|3"``) or ``"*"``.
         name: the argument's name, used in the error message.
-        bound: sizes bound by earlier checks; updated in place with new names.
+        bound: sizes bound by earlier checks; updated in place with new names. Default: a fresh dictionary.
+
+    Returns:
+        ``bound`` with the names of ``dims`` bound to their sizes.
 
     Raises:
         DTypeError: ``x`` is not a tensor.
         ShapeError: the rank or a size does not match.
+
+    Example:
+        >>> dims = check_shape(torch.zeros(2, 1, 4, 5), ["B", "1", "H", "W"], "left")
+        >>> dims
+        {'B': 2, 'H': 4, 'W': 5}
+        >>> check_shape(torch.zeros(2, 3, 3), ["B", "3", "3"], "K", dims)
+        {'B': 2, 'H': 4, 'W': 5}
     """
     if not isinstance(x, torch.Tensor):
         raise DTypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
@@ -96,8 +109,22 @@ def check_shape(
 def check_float(x: torch.Tensor, name: str) -> None:
     """Raise :class:`DTypeError` unless ``x`` is a float32 or float64 tensor.
 
-    float16 and bfloat16 are refused with a hint: the stages' sums, solves and sub-pixel fits need float32's
-    mantissa, and several CPU kernels have no half-precision version.
+    float16 and bfloat16 are refused with a hint: the stages' sums, solves and sub-pixel fits need float32's mantissa,
+    and several CPU kernels have no half-precision version.
+
+    Args:
+        x: the value to check.
+        name: the argument's name, used in the error message.
+
+    Raises:
+        DTypeError: not a tensor, not floating point, or half precision.
+
+    Example:
+        >>> check_float(torch.zeros(2), "disparity")
+        >>> check_float(torch.zeros(2, dtype=torch.int64), "disparity")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.DTypeError: disparity: expected a floating-point tensor, got torch.int64
     """
     if not isinstance(x, torch.Tensor):
         raise DTypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
@@ -108,7 +135,19 @@ def check_float(x: torch.Tensor, name: str) -> None:
 
 
 def check_same_device(reference: torch.Tensor, ref_name: str, **others: torch.Tensor | None) -> None:
-    """Raise :class:`DeviceError` if any tensor in ``others`` is on another device than ``reference``."""
+    """Raise :class:`DeviceError` if any tensor in ``others`` is on another device than ``reference``.
+
+    Args:
+        reference: the tensor whose device the others must share.
+        ref_name: its argument name, used in the error message.
+        **others: argument name -> tensor; None entries (optional arguments not given) are skipped.
+
+    Raises:
+        DeviceError: a tensor of ``others`` is on another device.
+
+    Example:
+        >>> check_same_device(torch.zeros(2), "left", right=torch.zeros(2), predicted=None)
+    """
     for other_name, t in others.items():
         if t is not None and t.device != reference.device:
             raise DeviceError(f"{other_name}: on {t.device}, but {ref_name} is on {reference.device}")
@@ -132,10 +171,19 @@ def _extremes(x: torch.Tensor) -> tuple[float, float] | None:
 def check_same_dtype(reference: torch.Tensor, ref_name: str, **others: torch.Tensor | None) -> None:
     """Raise :class:`DTypeError` if any tensor in ``others`` has another dtype than ``reference``.
 
-    >>> check_same_dtype(torch.zeros(2), "prev", next=torch.zeros(2, dtype=torch.float64))
-    Traceback (most recent call last):
-    ...
-    egorefine.core.errors.DTypeError: next: torch.float64, but prev is torch.float32; pass both in one dtype
+    Args:
+        reference: the tensor whose dtype the others must share.
+        ref_name: its argument name, used in the error message.
+        **others: argument name -> tensor; None entries are skipped.
+
+    Raises:
+        DTypeError: a tensor of ``others`` has another dtype.
+
+    Example:
+        >>> check_same_dtype(torch.zeros(2), "prev", next=torch.zeros(2, dtype=torch.float64))
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.DTypeError: next: torch.float64, but prev is torch.float32; pass both in one dtype
     """
     for other_name, t in others.items():
         if t is not None and t.dtype != reference.dtype:
@@ -145,9 +193,22 @@ def check_same_dtype(reference: torch.Tensor, ref_name: str, **others: torch.Ten
 def check_finite(x: torch.Tensor, name: str) -> None:
     """Raise :class:`ValueRangeError` if ``x`` holds NaN or Inf.
 
-    This synchronises with the device once; it guards public entry points, not inner loops. The test is
-    the extremes' finiteness (the minimum and maximum propagate NaN; an Inf is an extreme): one reduction
-    without a mask tensor, much cheaper than ``isfinite(x).all()``.
+    This synchronises with the device once; it guards public entry points, not inner loops. The test is the extremes'
+    finiteness (the minimum and maximum propagate NaN; an Inf is an extreme): one reduction without a mask tensor,
+    much cheaper than ``isfinite(x).all()``. Integer and bool tensors always pass.
+
+    Args:
+        x: the tensor to check.
+        name: the argument's name, used in the error message.
+
+    Raises:
+        ValueRangeError: a NaN or an Inf.
+
+    Example:
+        >>> check_finite(torch.tensor([1.0, float("nan")]), "keypoints")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: keypoints: contains NaN or Inf
     """
     if not (x.is_floating_point() or x.is_complex()):
         return  # integers and booleans are always finite
@@ -159,7 +220,21 @@ def check_finite(x: torch.Tensor, name: str) -> None:
 
 
 def check_positive(x: torch.Tensor, name: str) -> None:
-    """Raise :class:`ValueRangeError` unless every entry of ``x`` is finite and > 0."""
+    """Raise :class:`ValueRangeError` unless every entry of ``x`` is finite and > 0 (a baseline, a focal length).
+
+    Args:
+        x: the tensor to check.
+        name: the argument's name, used in the error message (with the first entries of ``x``).
+
+    Raises:
+        ValueRangeError: an entry is not finite or not > 0.
+
+    Example:
+        >>> check_positive(torch.tensor([0.5, 0.0]), "baseline")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: baseline: every entry must be finite and > 0, got [0.5, 0.0]
+    """
     if not bool((torch.isfinite(x) & (x > 0)).all()):
         raise ValueRangeError(f"{name}: every entry must be finite and > 0, got {x.detach().flatten()[:8].tolist()}")
 
@@ -169,22 +244,30 @@ def check_image(
 ) -> dict[str, int]:
     """Check a float image batch ``(B, C, H, W)``: C in {1, 3}, B >= 1, values in [0, 1] and no NaN/Inf.
 
-    ``min_size`` is the smallest height and width the caller's filters work on (default 1).
+    Values may stray beyond [0, 1] by ``IMAGE_RANGE_TOLERANCE`` (noise or augmentation); an image in 0..255 is refused
+    with a message saying how to scale it.
 
-    Values may stray beyond [0, 1] by ``IMAGE_RANGE_TOLERANCE`` (noise or augmentation); an image in 0..255
-    is refused with a message saying how to scale it.
+    Args:
+        x: the image batch.
+        name: the argument's name, used in the error message.
+        bound: sizes bound by earlier checks (see :func:`check_shape`); updated in place.
+        min_size: the smallest height and width the caller's filters work on; default 1 (any image).
+
+    Returns:
+        the bindings ``{"B", "H", "W"}`` (and those of ``bound``).
 
     Raises:
         ShapeError: wrong rank, channels, an empty batch or a side below ``min_size``.
         DTypeError: not a float32/float64 tensor (see :func:`check_float`).
         ValueRangeError: NaN/Inf, or values outside [0, 1] beyond the tolerance.
 
-    >>> check_image(torch.rand(2, 1, 4, 5), "left")
-    {'B': 2, 'H': 4, 'W': 5}
-    >>> check_image(torch.full((1, 1, 4, 5), 200.0), "left")
-    Traceback (most recent call last):
-    ...
-    egorefine.core.errors.ValueRangeError: left: expected values in [0, 1], got [200, 200]; scale 8-bit images by 1/255
+    Example:
+        >>> check_image(torch.rand(2, 1, 4, 5), "left")
+        {'B': 2, 'H': 4, 'W': 5}
+        >>> check_image(torch.full((1, 1, 4, 5), 9.0), "img")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: img: expected values in [0, 1], got [9, 9]; scale 8-bit images by 1/255
     """
     dims = check_shape(x, ["B", "1|3", "H", "W"], name, bound)
     check_float(x, name)
@@ -209,15 +292,24 @@ def check_intrinsics(K: torch.Tensor, name: str = "K", bound: dict[str, int] | N
 
     A K with a positive focal length and that last row is invertible, so a singular K is caught here too.
 
+    Args:
+        K: the intrinsics.
+        name: the argument's name, used in the error message; default ``"K"``.
+        bound: sizes bound by earlier checks (see :func:`check_shape`); updated in place.
+
+    Returns:
+        the bindings (``{"B"}`` and those of ``bound``).
+
     Raises:
         ShapeError, DTypeError, ValueRangeError: as the other checks.
 
-    >>> check_intrinsics(torch.tensor([[[400.0, 0, 320], [0, 400, 240], [0, 0, 1]]]))
-    {'B': 1}
-    >>> check_intrinsics(torch.zeros(1, 3, 3))
-    Traceback (most recent call last):
-    ...
-    egorefine.core.errors.ValueRangeError: K: expected fx, fy > 0 and the last row (0, 0, 1), got fx=[0.0], fy=[0.0]
+    Example:
+        >>> check_intrinsics(torch.tensor([[[400.0, 0, 320], [0, 400, 240], [0, 0, 1]]]))
+        {'B': 1}
+        >>> check_intrinsics(torch.zeros(1, 3, 3))
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: K: expected fx, fy > 0 and the last row (0, 0, 1), got fx=[0.0], fy=[0.0]
     """
     dims = check_shape(K, ["B", "3", "3"], name, bound)
     check_float(K, name)
@@ -232,7 +324,23 @@ def check_intrinsics(K: torch.Tensor, name: str = "K", bound: dict[str, int] | N
 
 
 def check_variance(x: torch.Tensor, name: str) -> None:
-    """Raise :class:`ValueRangeError` unless every entry of ``x`` is finite and >= 0 (a variance map)."""
+    """Raise :class:`ValueRangeError` unless every entry of ``x`` is finite and >= 0 (a variance map).
+
+    Args:
+        x: the tensor to check, float.
+        name: the argument's name, used in the error message.
+
+    Raises:
+        DTypeError: not a float32/float64 tensor.
+        ValueRangeError: a negative or non-finite entry.
+
+    Example:
+        >>> check_variance(torch.tensor([0.0, 0.25]), "variance")
+        >>> check_variance(torch.tensor([-1.0]), "variance")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: variance: expected finite values >= 0, got [-1, -1]
+    """
     check_float(x, name)
     extremes = _extremes(x)
     if extremes is None:
@@ -243,7 +351,22 @@ def check_variance(x: torch.Tensor, name: str) -> None:
 
 
 def check_choice(value: str, options: Sequence[str], name: str) -> None:
-    """Raise :class:`ValueRangeError` unless ``value`` is one of ``options``."""
+    """Raise :class:`ValueRangeError` unless ``value`` is one of ``options`` (a string setting such as ``cost``).
+
+    Args:
+        value: the setting given.
+        options: the settings accepted.
+        name: the argument's name, used in the error message.
+
+    Raises:
+        ValueRangeError: ``value`` is not among ``options``.
+
+    Example:
+        >>> check_choice("census", ("sad", "zncc"), "cost")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: cost: expected one of ['sad', 'zncc'], got 'census'
+    """
     if value not in options:
         raise ValueRangeError(f"{name}: expected one of {list(options)}, got {value!r}")
 

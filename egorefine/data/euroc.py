@@ -30,7 +30,8 @@ from .folder import read_grey
 
 __all__ = ["EurocSequence", "load_euroc", "read_euroc_sensor"]
 
-# Ground-truth and image time stamps closer than this are the same instant (1 ms; frames are 50 ms apart).
+# Ground-truth and image time stamps closer than this are the same instant: a millisecond, far below the
+# cameras' frame interval (20 Hz).
 _TIME_TOLERANCE_NS = 1_000_000
 
 
@@ -72,8 +73,29 @@ class EurocSequence(SequenceMixin):
 
 
 def read_euroc_sensor(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read the bracketed numeric lists of an EuRoC ``sensor.yaml``: ``T_BS`` (4, 4), ``intrinsics`` (4,),
-    ``distortion_coefficients`` (4,) and ``resolution`` (2,) (a small reader; no YAML dependency)."""
+    """Read the numeric lists of an EuRoC camera ``sensor.yaml`` (a small reader: no YAML dependency).
+
+    Args:
+        path: the ``sensor.yaml`` of ``mav0/cam0`` or ``mav0/cam1``.
+
+    Returns:
+        ``{"T_BS": (4, 4), "intrinsics": (4,), "distortion_coefficients": (4,), "resolution": (2,)}`` float64 arrays:
+        the camera's pose in the body frame, ``(fu, fv, cu, cv)`` in pixels, radial-tangential ``(k1, k2, p1, p2)``
+        and ``(width, height)``.
+
+    Raises:
+        DataError: a list is missing.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "sensor.yaml"
+        >>> _ = path.write_text("T_BS:\\n  rows: 4\\n  data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\\n"
+        ...                     "intrinsics: [458.6, 457.3, 367.2, 248.4]\\n"
+        ...                     "distortion_coefficients: [-0.28, 0.07, 0.0002, 0.00002]\\nresolution: [752, 480]\\n")
+        >>> s = read_euroc_sensor(path)
+        >>> s["T_BS"].shape, s["resolution"].tolist()
+        ((4, 4), [752.0, 480.0])
+    """
     text = Path(path).read_text()
     lists = {}
     # "key: [numbers]" possibly spanning lines; T_BS's list is under its own "data:" key.

@@ -17,11 +17,29 @@ __all__ = ["ImageFolderSequence", "read_grey"]
 
 def read_grey(path: str | os.PathLike, device: torch.device | str | None = None,
               dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Read an image file as a grey tensor ``(1, 1, H, W)`` in [0, 1] (8- or 16-bit, grey or colour).
+    """Read an image file as a grey tensor in [0, 1] (8- or 16-bit, grey or colour), as the stages take it.
+
+    Colour files go to grey with OpenCV's luma weights; integer files are scaled by their type's maximum.
+
+    Args:
+        path: the image file (any format OpenCV decodes: PNG, JPEG, TIFF, ...).
+        device: device of the result; default torch's default device.
+        dtype: dtype of the result; default float32, the library's working type.
+
+    Returns:
+        ``(1, 1, H, W)`` tensor in [0, 1].
 
     Raises:
         MissingDataError: no file at ``path`` (a ``FileNotFoundError`` too).
         DataError: the file is not an image OpenCV can decode.
+
+    Example:
+        >>> import tempfile, pathlib, cv2, numpy as np
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "left.png"
+        >>> _ = cv2.imwrite(str(path), np.full((24, 32), 255, np.uint8))
+        >>> img = read_grey(path)
+        >>> img.shape, float(img.max())
+        (torch.Size([1, 1, 24, 32]), 1.0)
     """
     if not Path(path).is_file():
         raise MissingDataError(f"path: no image file at {os.fspath(path)!r}")

@@ -47,10 +47,27 @@ def _read_token(f, path: PathLike) -> bytes:
 
 
 def read_pfm(path: PathLike) -> torch.Tensor:
-    """Read a PFM file as a float32 tensor ``(C, H, W)`` (C = 1 or 3), top row first.
+    """Read a PFM file (Middlebury, SceneFlow) as a float32 tensor, top row first.
+
+    PFM stores rows bottom to top, with the byte order in the sign of the header's scale; both are undone here. Values
+    are returned as stored (the scale's magnitude is not applied, as the Middlebury tools do not).
+
+    Args:
+        path: the ``.pfm`` file.
+
+    Returns:
+        ``(C, H, W)`` float32, C = 1 (``Pf``) or 3 (``PF``).
 
     Raises:
         ValueRangeError: the file is not a PFM file or is truncated.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "d.pfm"
+        >>> write_pfm(path, torch.tensor([[1.5, 2.0], [0.0, 3.25]]))
+        >>> read_pfm(path)
+        tensor([[[1.5000, 2.0000],
+                 [0.0000, 3.2500]]])
     """
     with open(path, "rb") as f:
         magic = _read_token(f, path)
@@ -74,13 +91,25 @@ def read_pfm(path: PathLike) -> torch.Tensor:
 
 
 def write_pfm(path: PathLike, data: torch.Tensor | np.ndarray, little_endian: bool = True, scale: float = 1.0) -> None:
-    """Write ``data`` ``(H, W)``, ``(C, H, W)`` or ``(1, C, H, W)`` with C = 1 or 3 as a PFM file (float32).
+    """Write a float map as a PFM file (float32), top row first.
 
     Args:
         path: file to write.
-        data: the map, top row first.
-        little_endian: byte order (stored as the sign of the scale).
-        scale: the header's scale magnitude (> 0); values are stored as they are.
+        data: ``(H, W)``, ``(C, H, W)`` or ``(1, C, H, W)`` tensor or array with C = 1 or 3, top row first.
+        little_endian: byte order, stored as the sign of the scale; default little-endian, what current machines
+            and readers use.
+        scale: the header's scale magnitude (> 0); values are stored as they are. Default 1.
+
+    Raises:
+        ShapeError: not 1 or 3 channels.
+        ValueRangeError: ``scale <= 0``.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "d.pfm"
+        >>> write_pfm(path, torch.ones(1, 4, 5))
+        >>> read_pfm(path).shape
+        torch.Size([1, 4, 5])
     """
     arr = _as_chw(data, "data")
     if arr.shape[0] not in (1, 3):
@@ -96,11 +125,24 @@ def write_pfm(path: PathLike, data: torch.Tensor | np.ndarray, little_endian: bo
 
 
 def read_kitti_disparity(path: PathLike) -> tuple[torch.Tensor, torch.Tensor]:
-    """Read a KITTI disparity PNG: disparity ``(1, H, W)`` float32 in pixels and validity ``(1, H, W)`` bool.
+    """Read a KITTI disparity PNG (16-bit, ``disparity = value / 256``, 0 = no disparity).
+
+    Args:
+        path: the ``.png`` file.
+
+    Returns:
+        disparity ``(1, H, W)`` float32 in pixels (0 where invalid) and validity ``(1, H, W)`` bool.
 
     Raises:
         FileNotFoundError: no readable image at ``path``.
         ValueRangeError: the image is not a single-channel 16-bit PNG.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "d.png"
+        >>> write_kitti_disparity(path, torch.tensor([[1.5, 0.0]]))
+        >>> read_kitti_disparity(path)
+        (tensor([[[1.5000, 0.0000]]]), tensor([[[ True, False]]]))
     """
     raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
@@ -115,10 +157,26 @@ def read_kitti_disparity(path: PathLike) -> tuple[torch.Tensor, torch.Tensor]:
 def write_kitti_disparity(
     path: PathLike, disparity: torch.Tensor | np.ndarray, valid: torch.Tensor | np.ndarray | None = None
 ) -> None:
-    """Write disparity ``(H, W)``, ``(1, H, W)`` or ``(1, 1, H, W)`` as a KITTI uint16 PNG (``value = round(256 d)``).
+    """Write a disparity map as a KITTI uint16 PNG, ``value = round(256 d)``: 1/256 px steps up to 256 px.
 
     Pixels that are invalid (``valid`` False), non-finite or not positive are written as 0; valid disparities are
     clipped to ``[1/256, 65535/256]`` so they stay distinguishable from invalid ones.
+
+    Args:
+        path: the ``.png`` file to write.
+        disparity: ``(H, W)``, ``(1, H, W)`` or ``(1, 1, H, W)`` tensor or array, pixels.
+        valid: bool of ``H x W`` pixels (any of those shapes), or None: every finite, positive pixel is valid.
+
+    Raises:
+        ShapeError: more than one channel, or ``valid`` of another size.
+        ValueRangeError: the PNG could not be written.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "d.png"
+        >>> write_kitti_disparity(path, torch.full((1, 1, 4, 5), 12.25))
+        >>> float(read_kitti_disparity(path)[0].max())
+        12.25
     """
     d = _as_chw(disparity, "disparity")
     if d.shape[0] != 1:

@@ -158,7 +158,25 @@ def write_confidence(stem: PathLike, confidence: torch.Tensor | np.ndarray, fmt:
 
 
 def write_mask(path: PathLike, mask: torch.Tensor | np.ndarray) -> Path:
-    """Write a boolean ``(H, W)`` mask as an 8-bit PNG, 255 where True and 0 elsewhere; returns ``path``."""
+    """Write a boolean mask as an 8-bit PNG, 255 where True and 0 elsewhere (written atomically).
+
+    Args:
+        path: the ``.png`` file to write.
+        mask: ``(H, W)`` (or with leading ones) bool or 0/1 tensor or array.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ShapeError: not one ``(H, W)`` plane.
+        ValueRangeError: the PNG could not be written.
+
+    Example:
+        >>> import tempfile, pathlib, cv2
+        >>> path = write_mask(pathlib.Path(tempfile.mkdtemp()) / "valid.png", torch.tensor([[True, False]]))
+        >>> cv2.imread(str(path), cv2.IMREAD_UNCHANGED).tolist()
+        [[255, 0]]
+    """
     path = Path(path)
     m = _plane(mask, "mask").astype(bool)
     with atomic_path(path) as tmp:
@@ -168,7 +186,24 @@ def write_mask(path: PathLike, mask: torch.Tensor | np.ndarray) -> Path:
 
 
 def write_preview(path: PathLike, rgb: np.ndarray) -> Path:
-    """Write an ``(H, W, 3)`` uint8 RGB image (e.g. :func:`egorefine.viz.colorize_disparity`) as a PNG."""
+    """Write an RGB image (e.g. :func:`egorefine.viz.colorize_disparity`) as a PNG (written atomically).
+
+    Args:
+        path: the ``.png`` file to write.
+        rgb: ``(H, W, 3)`` uint8 array, RGB order.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ShapeError: not an ``(H, W, 3)`` uint8 array.
+        ValueRangeError: the PNG could not be written.
+
+    Example:
+        >>> import tempfile, pathlib, numpy as np
+        >>> write_preview(pathlib.Path(tempfile.mkdtemp()) / "preview.png", np.zeros((4, 5, 3), np.uint8)).suffix
+        '.png'
+    """
     path = Path(path)
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ShapeError(f"rgb: expected an (H, W, 3) uint8 image, got {rgb.dtype} {tuple(rgb.shape)}")

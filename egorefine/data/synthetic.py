@@ -878,8 +878,8 @@ def render_sequence(
     cameras = None if opts.is_ideal else Cameras(opts, num_frames, H, W, int(seed), dev, dtype)
     noise_gen = torch.Generator(device=dev).manual_seed(int(seed) + 104729)
     # The renderer runs many medium-sized element-wise ops; on a shared machine the synchronisation of intra-op
-    # threads costs far more than it saves (measured 10x slower with 2 threads under load), so by default it
-    # renders on one thread and restores the caller's setting afterwards.
+    # threads costs far more than it saves (docs/decisions.md), so by default it renders on one thread and
+    # restores the caller's setting afterwards.
     threads = torch.get_num_threads()
     if num_threads is not None and dev.type == "cpu":
         torch.set_num_threads(int(num_threads))

@@ -14,21 +14,15 @@ threads; the result does not depend on their number.
 Agreement with the torch path: the same float32 formulas, summed in their natural order, with
 ``np.sqrt`` / ``np.exp`` (the sub-pixel step's Gaussian weight as the product of its x and y
 factors); torch sums in other orders and takes MKL's sqrt/exp, so values agree to float rounding,
-not bit for bit: the response differs from kornia's ``gftt_response`` by at most ~6e-7 of its
-peak, refined positions of the same corner by up to ~1.4e-3 px (the corner point is solved from
-sums of absolute pixel coordinates; the float32 ulp at x ~ 1000 is 6e-5). The selection rule is the
+not bit for bit: the response differs from kornia's ``gftt_response`` by float32 rounding of its
+peak, refined positions of the same corner by more (the corner point is solved from sums of
+absolute pixel coordinates, whose float32 spacing grows with the image's width). The selection rule is the
 torch path's: candidates ranked in their cell by response, then taken round-robin (the torch path's
 key ``strength - rank``, descending). Exact ties, which the torch path leaves in ``torch.topk``'s
 order, go here by pixel index (row-major, ascending): deterministic, and a batch item gives what
-it gives alone. Rounding can swap two nearly equal candidates or move one across a threshold. On
-the rendered rigs' first frames at 1000 slots the chosen pixels are the same (on the 640x480 frame
-two of them swap slots), and 998 of the 1000 refined positions lie within 1e-3 px of the torch
-path's (the other two within 1.4e-3).
-
-Speed, ``detect(image, max_features=1000)`` on those frames, two threads, A/B interleaved (medians
-of 31, another helper running): 1.5 ms at 640x480 and 2.0 ms at 1242x375, against 2.0 and 2.3 ms
-for this module's bit-identical predecessor and ~10 / ~16 ms for the torch path (which, run
-alternately with these kernels, also leaves its OpenMP threads spinning beside them).
+it gives alone. Rounding can swap two nearly equal candidates or move one across a threshold;
+``tests/features/test_detect_numba.py`` bounds how often and by how much, and the agreement and
+timings measured on the rendered rigs are in docs/decisions.md.
 
 ``AVAILABLE`` is False when numba cannot be imported; :func:`egorefine.features.detect` then takes
 the torch path, which stays the reference for GPU tensors, autograd, float64 and Harris.
@@ -45,6 +39,7 @@ import torch
 from ..core._jit import AVAILABLE, Workers
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
+from ._peaks import _subpixel_offsets
 
 __all__ = ["AVAILABLE", "detect_compiled", "usable_compiled"]
 
@@ -397,7 +392,7 @@ if AVAILABLE:
 
 
 class _Scratch(threading.local):
-    """Per-thread buffers reused across calls of one shape (fresh pages cost ~0.3 ms per call at 640x480)."""
+    """Per-thread buffers reused across calls of one shape (fresh pages cost a noticeable share of a call)."""
 
     def __init__(self) -> None:
         self.key = None
@@ -451,8 +446,6 @@ def detect_compiled(
     Returns keypoints ``(B, n, 2)`` and weights ``(B, n)`` as :func:`egorefine.features.detect` does (the caller
     has checked the image's values).
     """
-    from .detection import _subpixel_offsets
-
     b, _, h, w = grey.shape
     threads = max(1, threads or torch.get_num_threads())
     img = grey.detach()[:, 0].contiguous().numpy()

@@ -3,14 +3,13 @@
 The torch path matches all features at once, but each level of its search is a dozen small
 operator launches on ``(B, N, ...)`` tensors (two index gathers, two grouped convolutions, an
 arg-min, a gathered parabola) and a frame runs five or so such levels plus the Lucas-Kanade
-polish and the forward-backward match: 5-6 ms per frame of a few hundred features in the refiner,
-nearly all of it launch overhead. Every feature's work depends only on its own patches, so here
+polish and the forward-backward match: at a few hundred features nearly all of its time is
+launch overhead. Every feature's work depends only on its own patches, so here
 one compiled loop over the features does each stage of :func:`egorefine.features.tracking._track_live`
 (same steps, same settings): the level-0 search around the prediction with the polish of the
 features it finds, the coarse-to-fine search and polish of the others, then the way back. The
-per-feature tests and the stage sizes are numpy on ``(B, N)`` arrays between the loops. On the
-refiner's recorded calls (21-frame loops, 640x480 and 1242x375, two threads) a call takes about
-1.6-1.7 ms against 5.9-6.1 ms for the torch path.
+per-feature tests and the stage sizes are numpy on ``(B, N)`` arrays between the loops. Its timings
+against the torch path are in docs/decisions.md.
 
 Agreement with the torch path. Positions (rounding, cut windows, parabola, the polish's bicubic
 samples, steps and clamps) repeat its float32 formulas in its order; the window sums (ZNCC terms,
@@ -18,8 +17,8 @@ means, the polish's normal equations) are added in float64 instead of the convol
 order (the correlations with reassociation and fused multiply-adds: :func:`_correlate`). Where the
 torch path takes a coarse level's window sums from box maps (decided by how many features it
 matches at once, :func:`_box_bits`; the same sums as the window's, combined in float32), so do
-these loops. Measured over the refiner's loops on both rigs (13,105 live
-features): positions within 3.7e-4 px, scores 2.2e-4, fb errors 1.3e-4, no weight differing. A
+these loops. So positions, scores and round-trip errors differ by float32 rounding only (the differences
+seen on the refiner's loops are in docs/decisions.md; ``tests/features/test_track_numba.py`` bounds them). A
 decision (the arg-min, a threshold) can differ only where two costs, or a value and its
 threshold, lie within float32 rounding of each other; in practice that is a template cut outside
 the image (flat: every ZNCC is rounding noise), which both paths reject. Features are dealt out to
@@ -39,21 +38,22 @@ import torch
 from ..core._jit import AVAILABLE, Workers
 from ..core._jit import jit as _jit
 
+# the torch path pads feature subsets to multiples of this many slots; the loops repeat its sizes
+from ._matching import _SLOT_STEP
+
 __all__ = ["AVAILABLE", "track_compiled", "pyrdown"]
 
 _F = np.float32
 # Features per thread below which one thread does all (a hand-off to a pool thread costs tens of
 # microseconds, as much as a few dozen level-0 tracks).
 _MIN_PER_THREAD = 48
-# tracking._SLOT_STEP: the torch path pads feature subsets to multiples of this many slots
-_SLOT_STEP = 32
 
 
 if AVAILABLE:
 
     @_jit
     def _pyrdown(x, out):
-        """tracking._pyrdown of images ``x (B, H, W)`` into ``out (B, ceil(H/2), ceil(W/2))``: the [1, 2, 1] / 4 taps
+        """_pyramid._pyrdown of images ``x (B, H, W)`` into ``out (B, ceil(H/2), ceil(W/2))``: the [1, 2, 1] / 4 taps
         along columns, then rows, at even positions, borders repeated; its float32 operations in its order."""
         B, H, W = x.shape
         h, w = out.shape[1:]
@@ -107,14 +107,14 @@ if AVAILABLE:
 
     @_jit(inline="always")
     def _parabola(cm, minus, plus, eps):
-        """tracking._parabola in float32: vertex through (-1, minus), (0, cm), (1, plus), clamped to 0.5 px."""
+        """_matching._parabola in float32: vertex through (-1, minus), (0, cm), (1, plus), clamped to 0.5 px."""
         curv = max(minus - _F(2.0) * cm + plus, eps)
         return min(max(_F(0.5) * (minus - plus) / curv, _F(-0.5)), _F(0.5))
 
     @_jit(inline="always")
     def _cut(img, x0, y0, rows, cols, out):
         """``out[:rows, :cols]`` = the float64 pixels of ``img`` from ``(x0, y0)`` on, border repeated
-        (tracking._extract_patches); returns their sum."""
+        (_matching._extract_patches); returns their sum."""
         H, W = img.shape
         s = 0.0
         inside = x0 >= 0 and y0 >= 0 and x0 + cols <= W and y0 + rows <= H
@@ -136,10 +136,10 @@ if AVAILABLE:
 
     @_jit
     def _match_level(src, dst, px, py, ex, ey, p, radius, box, eps32, eps, tb, wb, cb, cc, acc):
-        """tracking._match_level (hard, ZNCC) for one feature: ``(px, py)`` in ``src``, estimate ``(ex, ey)`` in
+        """_matching._match_level (hard, ZNCC) for one feature: ``(px, py)`` in ``src``, estimate ``(ex, ey)`` in
         ``dst``, both float32 px of this level. Returns ``(x, y, best cost, on edge)``.
 
-        ``box``: the torch path takes this level's window sums from box maps (tracking._box_maps: the window's own
+        ``box``: the torch path takes this level's window sums from box maps (_matching._box_maps: the window's own
         sums, combined in float32): the costs repeat that combination.
         Scratch: ``tb (>= p, >= p)``, ``wb (>= S, >= S + 8)`` float64 (finite) with ``S = p + 2 radius``,
         ``cb (>= k * k)`` float32, ``cc (>= k * k + 8)`` and ``acc (3, >= S, >= k)`` float64, ``k = 2 radius + 1``.
@@ -165,7 +165,7 @@ if AVAILABLE:
         k = 2 * radius + 1
         icx, icy = np.int64(cx), np.int64(cy)
         _cut(dst, icx - h - radius, icy - h - radius, S, S, wb)
-        # ZNCC of every shift (tracking._cost_map): -sum((w - mean w) t0) / sqrt(sum (w - mean w)^2 sum t0^2).
+        # ZNCC of every shift (_matching._cost_map): -sum((w - mean w) t0) / sqrt(sum (w - mean w)^2 sum t0^2).
         # Window sums: running sums along each row, then down the columns.
         hs, hq, vs, vq = acc[0], acc[1], acc[2, 0], acc[2, 1]
         for a in range(S):
@@ -230,7 +230,7 @@ if AVAILABLE:
 
     @_jit
     def _to_level0(src, dst, b, levels, px, py, sx, sy, p, search, refine, box, eps32, eps, tb, wb, cb, cc, acc):
-        """tracking._match_to_level0 for item ``b`` of the pyramids (tuples of ``(B, H_l, W_l)``): the coarse levels
+        """_matching._match_to_level0 for item ``b`` of the pyramids (tuples of ``(B, H_l, W_l)``): the coarse levels
         ``levels - 1 .. 1``, then level 0. ``box``: bit ``l`` set where level ``l`` uses box sums.
 
         Returns level 0's ``(x, y, best cost, on edge)``.
@@ -261,7 +261,7 @@ if AVAILABLE:
 
     @_jit
     def _sample(img, posx, posy, p, out, hv, taps, wxs):
-        """tracking._sample_patches (bicubic, border, align_corners) of ``img`` around ``(posx, posy)`` into
+        """_matching._sample_patches (bicubic, border, align_corners) of ``img`` around ``(posx, posy)`` into
         ``out (p, p)`` float64, with grid_sample's float32 steps: the coordinates' normalisation round trip, the
         weights, each sample's four row interpolations and then the column one. A sample's row interpolation
         depends only on its column and the image row, so each is computed once (scratch: ``hv (>= p + 5, p)``
@@ -307,7 +307,7 @@ if AVAILABLE:
 
     @_jit
     def _lk(src, dst, px, py, ex, ey, p, iters, eps32, eps, eb, tb, gxb, gyb, ib, hv, taps, wxs):
-        """tracking._lk_refine (ZNCC) for one level-0 feature: the polished ``(x, y)`` and the template's sum of
+        """_matching._lk_refine (ZNCC) for one level-0 feature: the polished ``(x, y)`` and the template's sum of
         squared deviations (the same sum as :func:`_spread`'s).
 
         Scratch: ``eb (p + 2, p + 2)``, ``tb``, ``gxb``, ``gyb``, ``ib (p, p)``, all float64, and :func:`_sample`'s.
@@ -390,11 +390,11 @@ if AVAILABLE:
     @_jit
     def _search(src, dst, levels, points, start, p, search, refine, box, eps32, polish, iters, floor, out_pos,
                 out_best, out_edge, spread, order):
-        """tracking._match_to_level0 of the features ``order`` (flat ``b * N + n`` indices): ``points (B, N, 2)`` of
+        """_matching._match_to_level0 of the features ``order`` (flat ``b * N + n`` indices): ``points (B, N, 2)`` of
         ``src`` (level-0 px) matched into ``dst`` from ``start`` over ``levels`` levels; writes their level-0
         positions, best costs and on-edge flags.
 
-        ``polish``: 0 no more; 2: then tracking._lk_refine (``iters``) and the template's sum of squared deviations
+        ``polish``: 0 no more; 2: then _matching._lk_refine (``iters``) and the template's sum of squared deviations
         (the texture test, into ``spread``); 1: those only for a match that the torch path keeps (not on the edge,
         cost ``-best >= floor``), the others being searched again. The polish right after the search finds the
         feature's pixels still in the cache.
@@ -437,7 +437,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def _padded(count: int, n: int) -> int:
-    """The slot count the torch path matches ``count`` features of ``n`` slots in (tracking._first_true)."""
+    """The slot count the torch path matches ``count`` features of ``n`` slots in (_matching._first_true)."""
     return min(n, -(-count // _SLOT_STEP) * _SLOT_STEP)
 
 
@@ -452,7 +452,7 @@ def _box_bits(n: int, pyramid: tuple[np.ndarray, ...], radii: list[int]) -> int:
 
 
 def _radii(levels: int, search: int, refine: int) -> list[int]:
-    """Per-level radii of tracking._match_to_level0 over ``levels`` levels (level 0 first)."""
+    """Per-level radii of _matching._match_to_level0 over ``levels`` levels (level 0 first)."""
     return [search if level == levels - 1 else refine for level in range(levels)]
 
 
@@ -514,7 +514,7 @@ def track_compiled(
     eps32 = np.float32(1e-6)
     run = _Runner(max(1, threads or torch.get_num_threads()))
     # The torch path matches the live features in (B, M) subsets whose size decides, per level, whether the
-    # window sums come from box maps (tracking._match_level): the sizes are repeated here for that choice.
+    # window sums come from box maps (_matching._match_level): the sizes are repeated here for that choice.
     slots = n if count > n - _SLOT_STEP else _padded(count, n)
     pos = kp.copy()
     best = np.zeros((b, n), np.float32)
@@ -574,7 +574,7 @@ def track_compiled(
 
 
 def pyrdown(x: torch.Tensor) -> torch.Tensor:
-    """``tracking._pyrdown`` of a float32 CPU image batch ``(B, 1, H, W)``, compiled (bit for bit: the same float32
+    """``_pyramid._pyrdown`` of a float32 CPU image batch ``(B, 1, H, W)``, compiled (bit for bit: the same float32
     operations); a torch pass would wake torch's OpenMP threads to spin beside the tracker's kernels."""
     B, _, H, W = x.shape
     xn = x.detach()[:, 0].contiguous().numpy()

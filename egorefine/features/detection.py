@@ -15,10 +15,12 @@ only when tracks thin out").
 
 For float32 CPU images with the Shi-Tomasi response (the refiner's case), the same steps run
 compiled (:mod:`egorefine.features._detect_numba`, numba) where :func:`egorefine.core.use_compiled` allows
-it, ~5x faster: the same selection rule and formulas, agreeing with this path to float rounding (the same
-keypoints but for a rare swap of two nearly equal candidates; positions within ~1e-3 px; exact ties go by pixel
-index instead of ``torch.topk``'s order). The torch path stays the reference for GPU tensors, float64, Harris and
-tracing. Detection is a hard selection: keypoints and weights carry no gradient on either path.
+it, in a few passes over the image instead of some forty full-image operator launches: the same selection rule
+and formulas, agreeing with this path to float rounding (the same keypoints but for a rare swap of two nearly
+equal candidates, positions to float32 rounding of the corner solve; exact ties go by pixel index instead of
+``torch.topk``'s order; the differences and timings measured are in docs/decisions.md). The torch path stays
+the reference for GPU tensors, float64, Harris and tracing. Detection is a hard selection: keypoints and weights
+carry no gradient on either path.
 """
 
 from __future__ import annotations
@@ -42,12 +44,11 @@ from ..core import (
     use_compiled,
 )
 from . import _detect_numba
+from ._peaks import _MIN_SIDE, _subpixel_offsets
 
 __all__ = ["detect", "Detector", "replenish", "corner_response"]
 
 _RESPONSES = ("gftt", "harris")
-# The corner response's gradient and window filters pad by reflection, which needs more pixels than their radius.
-_MIN_SIDE = 4
 _SUBPIXEL = ("gradient", "quadratic", "none")
 
 
@@ -79,49 +80,12 @@ def corner_response(image: torch.Tensor, response: str = "gftt", k: float = 0.04
     return torch.sign(r) * r.abs().sqrt()
 
 
-def _subpixel_offsets(resp: torch.Tensor, ix: torch.Tensor, iy: torch.Tensor) -> torch.Tensor:
-    """Quadratic fit of ``resp`` (B, H, W) over the 3x3 neighbourhoods of integer peaks (B, N).
-
-    Fits ``r(u) = r0 + g.u + u^T H u / 2`` by central differences and returns the vertex
-    offset ``-H^-1 g`` (B, N, 2), clamped to one pixel. Where the fitted Hessian is not
-    negative definite, each axis falls back to its own 1-D parabola (or to no offset).
-    """
-    b, h, w = resp.shape
-    flat = resp.reshape(b, h * w)
-
-    def at(dx: int, dy: int) -> torch.Tensor:
-        xx = (ix + dx).clamp(0, w - 1)
-        yy = (iy + dy).clamp(0, h - 1)
-        return flat.gather(1, yy * w + xx)
-
-    c = at(0, 0)
-    gx = 0.5 * (at(1, 0) - at(-1, 0))
-    gy = 0.5 * (at(0, 1) - at(0, -1))
-    hxx = at(1, 0) - 2 * c + at(-1, 0)
-    hyy = at(0, 1) - 2 * c + at(0, -1)
-    hxy = 0.25 * (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1))
-    eps = eps_like(resp)
-    det = hxx * hyy - hxy * hxy
-    definite = (hxx < 0) & (det > eps * (hxx * hxx + hyy * hyy + eps))
-    det_safe = torch.where(definite, det, torch.ones_like(det))
-    ox2 = -(hyy * gx - hxy * gy) / det_safe
-    oy2 = -(hxx * gy - hxy * gx) / det_safe
-    # 1-D fallbacks: the parabola through three samples along one axis.
-    hxx_safe = torch.where(hxx < 0, hxx, -torch.ones_like(hxx))
-    hyy_safe = torch.where(hyy < 0, hyy, -torch.ones_like(hyy))
-    ox1 = torch.where(hxx < 0, -gx / hxx_safe, torch.zeros_like(gx))
-    oy1 = torch.where(hyy < 0, -gy / hyy_safe, torch.zeros_like(gy))
-    ox = torch.where(definite, ox2, ox1).clamp(-1.0, 1.0)
-    oy = torch.where(definite, oy2, oy1).clamp(-1.0, 1.0)
-    return torch.stack([ox, oy], dim=-1)
-
-
 def _max_filter(x: torch.Tensor, radius: int) -> torch.Tensor:
     """Maximum over the ``(2 radius + 1)^2`` square around every pixel of ``x`` (B, 1, H, W).
 
     Separable (rows, then columns) with shifted slices: the same result as
-    ``F.max_pool2d(x, 2 radius + 1, stride=1, padding=radius)``, about ten times faster on CPU
-    for the 7x7 window used here.
+    ``F.max_pool2d(x, 2 radius + 1, stride=1, padding=radius)``, with ``2 (2 radius + 1)`` maxima per
+    pixel instead of ``(2 radius + 1)^2``, which is much cheaper on CPU for the 7x7 window used here.
     """
     if radius == 0:
         return x
@@ -228,7 +192,7 @@ def detect(
     refined to sub-pixel precision with ``subpixel="gradient"`` (Foerstner's corner point: the
     least-squares intersection of the edges around the peak, exact for ideal junctions) or
     ``"quadratic"`` (a 2-D quadratic fit of the response over the 3x3 neighbourhood: cheaper,
-    biased by up to ~0.3 px on sharp corners), or not at all (``"none"``).
+    but biased on sharp corners, whose response peak is not a quadratic), or not at all (``"none"``).
 
     Selection is discrete, so the outputs carry no gradient.
 
@@ -336,16 +300,23 @@ def _compiled_applies(image: torch.Tensor, response: str) -> bool:
     kernel's limits, the Shi-Tomasi response on an image of 4 x 4 pixels or more (kornia's reflected 7x7 blur needs
     4; smaller images keep the torch path's error). :func:`detect` asks under ``no_grad``: a selection has no
     gradient on either path."""
-    shi_tomasi, large_enough = response == "gftt", min(image.shape[-2:]) >= 4
+    shi_tomasi, large_enough = response == "gftt", min(image.shape[-2:]) >= _MIN_SIDE
     return shi_tomasi and large_enough and use_compiled(image)
 
 
 class Detector(torch.nn.Module):
-    """Module form of :func:`detect`; stores the settings, ``forward(image) -> (keypoints, weights)``.
+    """Module form of :func:`detect`: stores the settings; ``forward(image) -> (keypoints, weights)``.
 
-    >>> kp, w = Detector(max_features=20, grid=(2, 2))(torch.rand(1, 1, 48, 48))
-    >>> kp.shape
-    torch.Size([1, 20, 2])
+    Args:
+        max_features, grid, response, nms_radius, quality, min_response, border, subpixel, k: as in :func:`detect`,
+            with its defaults (checked here, at construction).
+
+    ``forward(image)``: ``(B, 1|3, H, W)`` in [0, 1] -> keypoints ``(B, N, 2)`` and weights ``(B, N)``.
+
+    Example:
+        >>> kp, w = Detector(max_features=20, grid=(2, 2))(torch.rand(1, 1, 48, 48))
+        >>> kp.shape
+        torch.Size([1, 20, 2])
     """
 
     def __init__(

@@ -34,10 +34,23 @@ def make_intrinsics(
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> torch.Tensor:
-    """Build a batch of pinhole intrinsics ``(B, 3, 3)``.
+    """Build a batch of pinhole intrinsic matrices ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, in pixels.
 
-    >>> make_intrinsics(398.0, 320.0, 240.0, batch_size=2).shape
-    torch.Size([2, 3, 3])
+    Args:
+        focal: focal length ``fx`` in pixels.
+        cx: principal point x in pixels.
+        cy: principal point y in pixels.
+        batch_size: ``B``, the number of copies; default 1.
+        focal_y: ``fy`` in pixels; default ``focal`` (square pixels, as rectified stereo rigs have).
+        device: device of the result; default torch's default device.
+        dtype: dtype of the result; default float32, the library's working type.
+
+    Returns:
+        ``(B, 3, 3)`` intrinsics.
+
+    Example:
+        >>> make_intrinsics(398.0, 320.0, 240.0, batch_size=2).shape
+        torch.Size([2, 3, 3])
     """
     fy = focal if focal_y is None else focal_y
     K = torch.tensor([[focal, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], device=device, dtype=dtype)
@@ -52,24 +65,25 @@ def _per_batch(value: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 def disparity_to_depth(
     disparity: torch.Tensor, focal: torch.Tensor, baseline: torch.Tensor, min_disparity: float | None = None
 ) -> torch.Tensor:
-    """Depth ``Z = f * B / d`` of a disparity map or of disparities at points.
+    """Depth ``Z = f * B / d`` of a disparity map or of disparities at points (PAPER.md, "Setting").
 
-    Disparity is clamped to ``min_disparity`` (default: the dtype's epsilon) before dividing,
-    so zero disparity (a point at infinity) gives a large finite depth and a finite (zero)
-    gradient instead of Inf/NaN.
+    Disparity is clamped to ``min_disparity`` (default: the dtype's epsilon) before dividing, so zero disparity (a
+    point at infinity) gives a large finite depth and a finite (zero) gradient instead of Inf/NaN.
 
     Args:
         disparity: ``(B, ...)`` in pixels, e.g. ``(B, 1, H, W)`` or ``(B, N)``.
         focal: ``(B,)`` focal length in pixels.
         baseline: ``(B,)`` baseline in metres.
-        min_disparity: clamp for the divisor.
+        min_disparity: clamp for the divisor in pixels; default the dtype's epsilon, the smallest clamp that keeps
+            the division finite.
 
     Returns:
         depth of ``disparity``'s shape, in metres.
 
-    >>> d = torch.tensor([[4.0, 8.0]])
-    >>> disparity_to_depth(d, torch.tensor([398.0]), torch.tensor([0.08]))
-    tensor([[7.9600, 3.9800]])
+    Example:
+        >>> d = torch.tensor([[4.0, 8.0]])
+        >>> disparity_to_depth(d, torch.tensor([398.0]), torch.tensor([0.08]))
+        tensor([[7.9600, 3.9800]])
     """
     check_float(disparity, "disparity")
     check_shape(focal, ["B"], "focal", {"B": disparity.shape[0]})
@@ -82,10 +96,22 @@ def disparity_to_depth(
 def depth_to_disparity(
     depth: torch.Tensor, focal: torch.Tensor, baseline: torch.Tensor, min_depth: float | None = None
 ) -> torch.Tensor:
-    """Disparity ``d = f * B / Z``; the inverse of :func:`disparity_to_depth` (depth clamped likewise).
+    """Disparity ``d = f * B / Z`` of a depth map or of depths at points; the inverse of :func:`disparity_to_depth`.
 
-    >>> depth_to_disparity(torch.tensor([[7.96]]), torch.tensor([398.0]), torch.tensor([0.08]))
-    tensor([[4.]])
+    Depth is clamped to ``min_depth`` before dividing, as disparity is there.
+
+    Args:
+        depth: ``(B, ...)`` in metres, e.g. ``(B, 1, H, W)`` or ``(B, N)``.
+        focal: ``(B,)`` focal length in pixels.
+        baseline: ``(B,)`` baseline in metres.
+        min_depth: clamp for the divisor in metres; default the dtype's epsilon.
+
+    Returns:
+        disparity of ``depth``'s shape, in pixels.
+
+    Example:
+        >>> depth_to_disparity(torch.tensor([[7.96]]), torch.tensor([398.0]), torch.tensor([0.08]))
+        tensor([[4.]])
     """
     check_float(depth, "depth")
     check_shape(focal, ["B"], "focal", {"B": depth.shape[0]})
@@ -139,21 +165,43 @@ def unproject(pixels: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> tor
 def pixel_grid(
     height: int, width: int, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
 ) -> torch.Tensor:
-    """Pixel centres ``(H, W, 2)`` as ``(x, y)``, with integer coordinates at pixel centres.
+    """Pixel coordinates of an image, ``(x, y)`` per pixel, with integer coordinates at pixel centres.
 
-    >>> pixel_grid(2, 3)[1, 2]
-    tensor([2., 1.])
+    Args:
+        height: ``H`` in pixels.
+        width: ``W`` in pixels.
+        device: device of the result; default torch's default device.
+        dtype: dtype of the result; default float32.
+
+    Returns:
+        ``(H, W, 2)``: ``grid[y, x] = (x, y)``.
+
+    Example:
+        >>> pixel_grid(2, 3)[1, 2]
+        tensor([2., 1.])
     """
     return create_meshgrid(height, width, normalized_coordinates=False, device=device, dtype=dtype)[0]
 
 
 def unproject_disparity(disparity: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> torch.Tensor:
-    """3-D point of every pixel of a disparity map, ``(B, H, W, 3)``.
+    """3-D point, in the left camera's frame, of every pixel of a disparity map.
+
+    Each pixel ``(x, y)`` with disparity ``d`` lies at depth ``Z = f B / d`` (``f = fx``) and at
+    ``X = (x - cx) Z / fx``, ``Y = (y - cy) Z / fy``: the points the paper moves by the ego-motion (PAPER.md, step 3).
 
     Args:
         disparity: ``(B, 1, H, W)`` in pixels (clamped as in :func:`disparity_to_depth`).
-        K: ``(B, 3, 3)`` intrinsics of the left camera.
-        baseline: ``(B,)`` in metres.
+        K: ``(B, 3, 3)`` intrinsics of the rectified left camera.
+        baseline: ``(B,)`` in metres, > 0.
+
+    Returns:
+        ``(B, H, W, 3)`` points ``(X, Y, Z)`` in metres.
+
+    Example:
+        >>> K = make_intrinsics(100.0, 1.0, 1.0)
+        >>> points = unproject_disparity(torch.full((1, 1, 3, 3), 4.0), K, torch.tensor([0.08]))
+        >>> points.shape, points[0, 1, 1]
+        (torch.Size([1, 3, 3, 3]), tensor([0., 0., 2.]))
     """
     dims = check_shape(disparity, ["B", "1", "H", "W"], "disparity")
     check_shape(K, ["B", "3", "3"], "K", dims)

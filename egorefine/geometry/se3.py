@@ -83,15 +83,24 @@ def _log_coefficient(theta2: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> 
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
-    """Exponential map ``(B, 6) -> (B, 4, 4)``; ``xi = (rho, phi)``, translation part first.
+    """Exponential map of SE(3): a twist ``xi = (rho, phi)``, translation part first, to a rigid motion.
 
-    Gradients are finite at ``phi = 0`` (kornia uses series expansions near zero).
+    ``R = I + A W + B W^2`` (Rodrigues) and ``t = V rho`` with the left Jacobian ``V = I + B W + C W^2``,
+    ``W = hat(phi)``; the coefficients switch to their Taylor series at small angles, so values and gradients are finite
+    at ``phi = 0`` (see the module notes for the switch points).
 
-    >>> se3_exp(torch.zeros(1, 6))[0]
-    tensor([[1., 0., 0., 0.],
-            [0., 1., 0., 0.],
-            [0., 0., 1., 0.],
-            [0., 0., 0., 1.]])
+    Args:
+        xi: ``(B, 6)`` twists ``(rho, phi)``: ``rho`` in metres, ``phi`` an axis-angle in radians.
+
+    Returns:
+        ``(B, 4, 4)`` rigid motions in ``xi``'s dtype.
+
+    Example:
+        >>> se3_exp(torch.zeros(1, 6))[0]
+        tensor([[1., 0., 0., 0.],
+                [0., 1., 0., 0.],
+                [0., 0., 1., 0.],
+                [0., 0., 0., 1.]])
     """
     check_shape(xi, ["B", "6"], "xi")
     check_float(xi, "xi")
@@ -109,7 +118,22 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:
-    """Logarithm map ``(B, 4, 4) -> (B, 6)``, the inverse of :func:`se3_exp` for rotations below pi."""
+    """Logarithm map of SE(3): a rigid motion to its twist ``(rho, phi)``, the inverse of :func:`se3_exp`.
+
+    The rotation angle comes from ``atan2`` (finite gradient at zero rotation, unlike ``acos``); valid for rotations
+    below pi, where the axis is unique.
+
+    Args:
+        T: ``(B, 4, 4)`` rigid motions.
+
+    Returns:
+        ``(B, 6)`` twists ``(rho, phi)``, translation part first.
+
+    Example:
+        >>> xi = torch.tensor([[0.1, 0.0, 0.2, 0.0, 0.05, 0.0]], dtype=torch.float64)
+        >>> torch.allclose(se3_log(se3_exp(xi)), xi)
+        True
+    """
     check_shape(T, ["B", "4", "4"], "T")
     check_float(T, "T")
     R, t = T[:, :3, :3], T[:, :3, 3]
@@ -137,7 +161,19 @@ def se3_log(T: torch.Tensor) -> torch.Tensor:
 
 
 def se3_inverse(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of rigid motions ``(B, 4, 4)`` in closed form: ``[R^T, -R^T t]``."""
+    """Inverse of rigid motions in closed form, ``[R^T | -R^T t]``: cheaper and more exact than a general inverse.
+
+    Args:
+        T: ``(B, 4, 4)`` rigid motions ``dst_T_src``.
+
+    Returns:
+        ``(B, 4, 4)`` motions ``src_T_dst``.
+
+    Example:
+        >>> T = se3_exp(torch.tensor([[0.1, 0.0, 0.2, 0.0, 0.05, 0.0]]))
+        >>> torch.allclose(se3_inverse(T) @ T, torch.eye(4), atol=1e-6)
+        True
+    """
     check_shape(T, ["B", "4", "4"], "T")
     R_t = T[:, :3, :3].transpose(1, 2)
     out = torch.zeros_like(T)
@@ -148,22 +184,58 @@ def se3_inverse(T: torch.Tensor) -> torch.Tensor:
 
 
 def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Apply ``dst_T_src`` ``(B, 4, 4)`` to points ``(B, N, 3)`` in ``src``; returns points in ``dst``."""
+    """Apply rigid motions ``dst_T_src`` to 3-D points given in the frame ``src``: ``R p + t``.
+
+    Args:
+        T: ``(B, 4, 4)`` rigid motions ``dst_T_src``.
+        points: ``(B, N, 3)`` points in ``src``.
+
+    Returns:
+        ``(B, N, 3)`` the points in ``dst``.
+
+    Example:
+        >>> T = twist_to_motion(torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]]))  # 0.1 m forward
+        >>> transform_points(T, torch.tensor([[[0.0, 0.0, 2.0]]]))
+        tensor([[[0.0000, 0.0000, 1.9000]]])
+    """
     dims = check_shape(T, ["B", "4", "4"], "T")
     check_shape(points, ["B", "N", "3"], "points", dims)
     return points @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
 
 
 def twist_to_motion(twist: torch.Tensor) -> torch.Tensor:
-    """The paper's ego-motion ``(U, V, W, alpha, beta, gamma)`` ``(B, 6)`` -> ``camera_t_T_camera_{t-1}`` ``(B, 4, 4)``.
+    """The paper's ego-motion ``(U, V, W, alpha, beta, gamma)`` as the rigid motion ``camera_t_T_camera_{t-1}``.
 
-    >>> M = twist_to_motion(torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]]))
-    >>> M[0, 2, 3]  # moving forward 0.1 m brings static points 0.1 m closer
-    tensor(-0.1000)
+    A static point moves relative to the rig by ``-T - omega x P`` (PAPER.md eq. 1), with ``T = (U, V, W)`` the rig's
+    translation and ``omega = (alpha, beta, gamma)`` its rotation over the step. The finite-step motion is
+    ``se3_exp(-twist)``, whose first-order action on a point is exactly eq. (1).
+
+    Args:
+        twist: ``(B, 6)`` ``(U, V, W)`` in metres and ``(alpha, beta, gamma)`` in radians.
+
+    Returns:
+        ``(B, 4, 4)`` motions ``camera_t_T_camera_{t-1}``.
+
+    Example:
+        >>> M = twist_to_motion(torch.tensor([[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]]))
+        >>> M[0, 2, 3]  # moving forward 0.1 m brings static points 0.1 m closer
+        tensor(-0.1000)
     """
     return se3_exp(-twist)
 
 
 def motion_to_twist(motion: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`twist_to_motion`: ``camera_t_T_camera_{t-1}`` ``(B, 4, 4)`` -> ``(B, 6)``."""
+    """The paper's twist of a rigid motion ``camera_t_T_camera_{t-1}``: the inverse of :func:`twist_to_motion`.
+
+    Args:
+        motion: ``(B, 4, 4)`` motions ``camera_t_T_camera_{t-1}``, rotations below pi.
+
+    Returns:
+        ``(B, 6)`` ``(U, V, W, alpha, beta, gamma)``, metres and radians.
+
+    Example:
+        >>> twist = torch.tensor([[0.0, 0.01, 0.1, 0.002, -0.01, 0.0]], dtype=torch.float64)
+        >>> torch.allclose(motion_to_twist(twist_to_motion(twist)), twist)
+        True
+    """
     return -se3_log(motion)

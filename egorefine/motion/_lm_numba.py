@@ -2,7 +2,7 @@
 
 The torch version is ~100 small operator launches per iteration on ``(B, N, 16)`` tensors; the
 arithmetic is a few thousand multiply-adds per feature, so on the CPU the launches set its time
-(about 1.5 ms of a 3 ms solve). Here one loop over the features per step does the reprojection
+(about half of the exact solve's). Here one loop over the features per step does the reprojection
 with its Jacobians, the IRLS normal equations and the robust cost, and the 6x6 damped solve and
 the SE(3) retraction are unrolled small-matrix code. The steps, acceptance rule and damping
 schedule are the torch version's (:func:`egorefine.motion.solve._levenberg_marquardt`), computed

@@ -392,8 +392,8 @@ def _twist_exp(delta: torch.Tensor, G: torch.Tensor, halvings: int = 3, degree: 
     """``exp`` of the 4x4 twist matrices of ``delta (B, 6)`` (``G`` from :func:`_se3_generators`): ``(B, 4, 4)``.
 
     Scaling and squaring with a fixed Taylor degree, in batched matrix products only: the result of an item does
-    not depend on its batch (``torch.linalg.matrix_exp`` rounds differently for B = 1 and B = 2, which made the
-    refiner's batch items drift apart by ~1e-5 m over a few frames), and it is about 1.5x faster for 4x4 matrices.
+    not depend on its batch (``torch.linalg.matrix_exp`` rounds differently for B = 1 and B = 2, which lets the
+    refiner's batch items drift apart over a few frames), and it is cheaper than ``matrix_exp`` for 4x4 matrices.
     With ``|X| / 2^halvings <= 0.4`` (a rotation up to ~180 degrees) the truncation is below 1e-8; LM increments
     are far smaller.
     """
@@ -630,11 +630,21 @@ def solve_ego_motion(
 class EgoMotionSolver(nn.Module):
     """Module form of :func:`solve_ego_motion`: stores the method and settings; ``forward`` calls the function.
 
-    >>> from egorefine.geometry import make_intrinsics
-    >>> solver = EgoMotionSolver(method="robust")
-    >>> pts = torch.rand(1, 30, 2) * 300
-    >>> solver(pts, pts, torch.full((1, 30), 8.0), make_intrinsics(400.0, 150.0, 150.0), torch.ones(1)).twist.shape
-    torch.Size([1, 6])
+    Args:
+        method: ``"exact"`` (default: the linear solve of eq. (3) is biased by its first-order model on finite
+            steps), ``"robust"`` or ``"linear"`` (the paper's).
+        min_features, loss, scale, ransac_hypotheses, ransac_threshold, iterations, seed, rcond: as in
+            :func:`solve_ego_motion`, with its defaults.
+
+    ``forward(points_prev, points_next, disparity_prev, K, baseline, weights=None, valid_prev=None) -> EgoMotion``,
+    shapes as in :func:`solve_ego_motion`.
+
+    Example:
+        >>> from egorefine.geometry import make_intrinsics
+        >>> solver = EgoMotionSolver(method="robust")
+        >>> pts = torch.rand(1, 30, 2) * 300
+        >>> solver(pts, pts, torch.full((1, 30), 8.0), make_intrinsics(400.0, 150.0, 150.0), torch.ones(1)).twist.shape
+        torch.Size([1, 6])
     """
 
     def __init__(
