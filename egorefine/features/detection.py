@@ -43,6 +43,7 @@ from ..core import (
     to_grey,
     use_compiled,
 )
+from ..core.dispatch import needs_grad
 from . import _detect_numba
 from ._peaks import _MIN_SIDE, _subpixel_offsets
 
@@ -194,7 +195,9 @@ def detect(
     ``"quadratic"`` (a 2-D quadratic fit of the response over the 3x3 neighbourhood: cheaper,
     but biased on sharp corners, whose response peak is not a quadratic), or not at all (``"none"``).
 
-    Selection is discrete, so the outputs carry no gradient.
+    Selection is discrete (piecewise constant in the image); the sub-pixel step is smooth: with an ``image``
+    that requires grad, the keypoints carry the gradient of their sub-pixel offsets (``"gradient"`` or
+    ``"quadratic"``), the weights none.
 
     Args:
         image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image in [0, 1].
@@ -220,10 +223,24 @@ def detect(
     check_choice(response, _RESPONSES, "response")
     check_choice(subpixel, _SUBPIXEL, "subpixel")
     _check_settings(max_features, tuple(grid), nms_radius, border)
+    settings = (max_features, tuple(grid), response, nms_radius, quality, min_response, border, subpixel, k)
+    if subpixel == "none" or not needs_grad(image):
+        with torch.no_grad():
+            return _detect(image, *settings)
+    # the selection without a graph (the torch path, for the pixels it chose), the sub-pixel step with one
     with torch.no_grad():
-        return _detect(
-            image, max_features, tuple(grid), response, nms_radius, quality, min_response, border, subpixel, k
-        )
+        _, weights, ix, iy = _detect(image, *settings, pixels=True)
+    kp = torch.stack([ix, iy], dim=-1).to(image.dtype)
+    kp = kp + _offsets(image, ix, iy, response, k, subpixel)
+    return kp * weights.unsqueeze(-1), weights
+
+
+def _offsets(image: torch.Tensor, ix: torch.Tensor, iy: torch.Tensor, response: str, k: float,
+             subpixel: str) -> torch.Tensor:
+    """Sub-pixel offsets ``(B, N, 2)`` of the integer peaks ``(ix, iy)`` by the ``subpixel`` method."""
+    if subpixel == "gradient":
+        return _gradient_offsets(to_grey(image), ix, iy)
+    return _subpixel_offsets(corner_response(image, response, k)[:, 0], ix, iy)
 
 
 def _detect(
@@ -237,9 +254,12 @@ def _detect(
     border: int,
     subpixel: str,
     k: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    pixels: bool = False,
+) -> tuple[torch.Tensor, ...]:
+    """The detection: ``(keypoints, weights)``; with ``pixels`` (always the torch path) also the integer peaks
+    ``(ix, iy)``, each ``(B, N)``."""
     b, _, h, w = image.shape
-    if _compiled_applies(image, response):
+    if not pixels and _compiled_applies(image, response):
         # the same steps compiled (egorefine.features._detect_numba): float32 CPU inference, agreeing to rounding
         return _detect_numba.detect_compiled(
             to_grey(image), n, grid, nms_radius, quality, min_response, border, subpixel
@@ -292,7 +312,7 @@ def _detect(
         kp = kp + _subpixel_offsets(resp[:, 0], ix, iy)
     weights = valid.to(resp.dtype)
     kp = kp * weights.unsqueeze(-1)
-    return kp, weights
+    return (kp, weights, ix, iy) if pixels else (kp, weights)
 
 
 def _compiled_applies(image: torch.Tensor, response: str) -> bool:
@@ -434,7 +454,7 @@ def replenish(
         slot_rank = empty.long().cumsum(dim=1) - 1  # j-th empty slot gets the j-th usable candidate
         fill = empty & (slot_rank < n_usable)
         pick = order.gather(1, slot_rank.clamp(0, cand.shape[1] - 1))
-        fresh = cand.gather(1, pick.unsqueeze(-1).expand(b, m, 2))
+    fresh = cand.gather(1, pick.unsqueeze(-1).expand(b, m, 2))  # (outside no_grad: a detection's graph stays)
     zeros = torch.zeros_like(keypoints)
     new_kp = torch.where(live.unsqueeze(-1), keypoints, torch.where(fill.unsqueeze(-1), fresh, zeros))
     new_w = torch.where(live, weights, fill.to(weights.dtype))

@@ -3,11 +3,14 @@
 from .correct import CorrectDisparity, Correction, correct_disparity
 from .cracks import close_cracks
 from .health import Status
+from .learning import CONFIDENCE_INPUTS, ConfidenceNet
 from .predict import PredictDisparity, Prediction, fill_holes_background, predict_disparity
 from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
 __all__ = [
     "Status",
+    "ConfidenceNet",
+    "CONFIDENCE_INPUTS",
     "CorrectDisparity",
     "Correction",
     "correct_disparity",

@@ -3,8 +3,7 @@
 :func:`egorefine.refine.predict_disparity` in hard mode with refinement is about 30 small torch
 passes over the image (moving the points, an ``amax`` scatter, the 3x3 z-buffer maximum, the
 gathered check, the refinement's four gathered corners, hole filling), each one reading and
-writing full-size maps: about 14 ms per 640x480 frame on two threads, the largest part of the
-refiner's loop. Every target pixel's work depends only on its own values and a few gathered
+writing full-size maps, the largest part of the refiner's loop on the CPU. Every target pixel's work depends only on its own values and a few gathered
 ones, so here it is three loops:
 
 1. (row bands on threads) move every source point (PAPER.md eq. 1 in inverse-depth form), write the
@@ -14,8 +13,8 @@ ones, so here it is three loops:
 3. (row bands on threads) the background hole fill and the outputs.
 
 Step 2 works a row at a time and splits each stage into loops that only compute (LLVM turns them
-into SIMD code) and loops that only gather (which would keep a loop scalar): about 5x faster than
-one loop per pixel. The whole splat takes about 3 ms at 640x480 on two threads.
+into SIMD code) and loops that only gather (which would keep a loop scalar), several times faster than
+one loop per pixel (timings in docs/decisions.md).
 
 They repeat the torch path's float32 formulas in the same order (see :mod:`egorefine.refine.predict`
 for what each step means), so the decisions agree with it; values may differ in the last bits
@@ -25,7 +24,7 @@ of :func:`egorefine.refine.close_cracks` for the hole pixels in one loop (:func:
 place, with the refiner's search-range check after it), and :func:`edge_variance`
 the window spreads of :func:`egorefine.refine.correct.edge_variance` in one pass (bit for bit), and
 :func:`expected_positions` the refiner's constant-velocity guess of where its features land (one loop
-instead of some forty torch ops on a few hundred points, ~0.45 ms of launch overhead per frame).
+instead of some forty torch ops on a few hundred points, whose launches cost more than their arithmetic).
 
 Used for float32 CPU tensors that need no gradient when numba is installed (``AVAILABLE``); the
 torch path stays the reference for GPU tensors, float64 and autograd.
@@ -127,7 +126,7 @@ if AVAILABLE:
         none). A row without a landed pixel is filled later, from the whole image (marked in ``later``).
 
         A row at a time, each stage split into loops without gathers (compiled to SIMD code) and loops that only
-        gather: with the gathers inside, the loop stays scalar and is about 5x slower.
+        gather: with the gathers inside, the loop stays scalar and several times slower.
         """
         H, W = est_out.shape
         wp = key_src.shape[1]
@@ -481,7 +480,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
 
     No torch pass over the maps before the kernels: validity (``d >= 0`` and ``valid``) and finiteness are
     tested inside them. A torch op on a full map wakes torch's OpenMP threads, which then spin on the second core
-    for a few ms while these kernels want it (measured: ~1.5-2.4 ms more per call).
+    for a few ms while these kernels want it.
 
     Args:
         d, var, valid: ``(B, H, W)`` source disparity, its variance and bool validity (None: all).
@@ -597,8 +596,7 @@ def finish_prediction(disparity: torch.Tensor, variance: torch.Tensor, valid: to
 def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int, base: torch.Tensor | None = None,
                   threads: int | None = None) -> torch.Tensor:
     """:func:`egorefine.refine.correct.edge_variance` of float32 CPU maps ``(B, H, W)`` (``valid`` bool, ``base``
-    float32 or None): one compiled pass instead of ~12 full-map torch ops (memory-bound: ~3 ms at 1242x375 on two
-    threads, more in the refiner's loop)."""
+    float32 or None): one compiled pass instead of ~12 full-map torch ops (memory-bound)."""
     B, H, W = disparity.shape
     threads = max(1, threads or torch.get_num_threads())
     d, ok = disparity.numpy(), valid.numpy()

@@ -18,11 +18,9 @@ measurement (``e = s``, ``P = R``); where the measurement is invalid, keep the p
 
 Kalman mode has one more validity rule, ``max_unverified_variance``: a predicted pixel that the
 measurement does not cover (stereo rejected it: occlusion, no texture, a left-right conflict) stays
-valid only while its own variance says it is accurate, ``P <= max_unverified_variance``. On the
-rendered benchmark sequences (Kalman mode verifying every frame) such kept pixels with ``P < 0.05``
-px^2 were off by more than 0.5 px in 0.5-0.7 % of cases, those with ``0.1 <= P < 0.3`` in 34-36 %,
-``P >= 0.3`` in 55-70 %: a chain of unverified predictions, a stereo outlier carried on, or a depth
-edge (see :func:`edge_variance`).
+valid only while its own variance says it is accurate, ``P <= max_unverified_variance``: a large ``P``
+marks a chain of unverified predictions, a stereo outlier carried on, or a depth edge (see
+:func:`edge_variance`), and such pixels are much more often wrong (docs/decisions.md).
 
 :func:`edge_variance` gives the variance a prediction has at its own depth edges: a pixel whose
 3x3 neighbourhood spans disparities ``r`` apart may belong to either surface (the splat places an
@@ -78,9 +76,9 @@ class Correction(NamedTuple):
 
 def _window_max(x: torch.Tensor, radius: int) -> torch.Tensor:
     """Maximum over the ``(2 radius + 1)^2`` window around each pixel of ``x`` ``(B, 1, H, W)`` (border: the part
-    of the window inside the image). Shifted maxima along each axis, ``radius`` times (on CPU a 3x3
-    ``max_pool2d`` of a one-channel 1242x375 map costs ~10 ms). The torch path of :func:`edge_variance` (GPU,
-    float64); float32 CPU maps take a compiled pass instead (this one is memory-bound: ~3 ms at 1242x375)."""
+    of the window inside the image). Shifted maxima along each axis, ``radius`` times (cheaper on the CPU than
+    ``max_pool2d`` of a one-channel map). The torch path of :func:`edge_variance` (GPU, autograd, float64); float32
+    CPU maps take a compiled pass instead (this one is memory-bound)."""
     out = x
     for _ in range(radius):
         src = out

@@ -58,9 +58,8 @@ coordinates (one affine map per component over the grid), out-of-image points la
 a padded flat layout instead of being masked, bilinear neighbours share one index through shifted
 views, and masks are applied by arithmetic (``torch.where`` on noisy masks is slow on CPU). When no
 input needs a gradient, intermediate maps are updated in place; the two paths give the same numbers
-(tests check it). Hard mode at 640x480 float32 costs about 31 ms of CPU on one thread of a busy
-2-core machine (the coverage-test version it replaced: about 49 ms there; the first version: about
-135 ms); the refinement step is about 14 ms of that, the check about 5, the hole fill about 4.
+(tests check it). The refinement step is the largest part of hard mode's cost, then the check and the hole fill
+(timings in docs/decisions.md).
 
 Known limit: a discrete map knows a depth edge only to within a pixel, so foreground edges alias by
 up to half a pixel per prediction and the error random-walks (and grows with magnification) when
@@ -592,7 +591,7 @@ def _hard_refine(
             g = d_src_pad[c:].index_select(0, idx00).view(B, H, W)
             with torch.no_grad():
                 key = g if fast else key_src[c:].index_select(0, idx00).view(B, H, W)
-                same = torch.sub(key, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
+                same = torch.sub(key, expect).abs_().lt_(surface_tolerance)  # (1 or 0)
             vals.append(torch.lerp(expect, g, same))
             flags.append(same)
         d_src = torch.lerp(torch.lerp(vals[0], vals[1], fx), torch.lerp(vals[2], vals[3], fx), fy)
@@ -652,7 +651,7 @@ def _refine(
         for (i, j), c in zip(_CORNERS, shifts, strict=True):
             g = key_src[c:].index_select(0, idx00).view(B, H, W)
             with torch.no_grad():
-                same = torch.sub(g, expect).abs_().lt_(surface_tolerance)  # 1.0 / 0.0
+                same = torch.sub(g, expect).abs_().lt_(surface_tolerance)  # (1 or 0)
             if fast:
                 wk = same.mul_(rwx[i]).mul_(rwy[j])
                 if wk_sum is None:
@@ -798,7 +797,7 @@ def _coverage_splat(
         with torch.no_grad():
             if mode == "hard":
                 # z-buffer (nearest surface wins); ties within surface_tolerance averaged with bilinear weights
-                sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # 1.0 / 0.0, in place (keys are done)
+                sel = key.sub_(z_at).abs_().le_(surface_tolerance)  # (1 or 0), in place (keys are done)
             else:
                 # candidates the z-buffer rejected above as fattening are left out
                 sel = ((key >= 0) & (key <= z_at + surface_tolerance)).to(dtype)

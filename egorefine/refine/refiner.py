@@ -66,11 +66,8 @@ _TRACK_LEVELS = 3
 
 
 # measure_holes: a 6 px tile is matched where at least half of it is holes. Compact disocclusions and regions
-# entering the view fill such tiles; so do the strips a few pixels wide that a depth edge uncovers, which 16 px tiles
-# missed (with the background rule: density +0.35 to +0.56 % over 16 px tiles on the refine benchmark's sequences,
-# 31 frames, at no measurable cost; 4 px tiles added 0.07 to 0.18 % more for 4 to 15 % more time on the KITTI-like
-# rig). A share of 0.1 (16 px tiles) also caught the scattered holes of a near road: 0.3 to 0.5 % more density for
-# 1.2 to 3.7 times the cost.
+# entering the view fill such tiles; so do the strips a few pixels wide that a depth edge uncovers, which larger
+# tiles miss; smaller tiles or a lower share cost more than they add (docs/decisions.md, "Hole tiles").
 _HOLE_TILE = 6
 _HOLE_SHARE = 0.5
 
@@ -284,7 +281,7 @@ def _expected_positions(
     Points whose four neighbouring pixels are not all valid keep their position."""
     H, W = disparity.shape[-2:]
     if valid.dtype == torch.bool and use_compiled(keypoints, disparity, valid, motion, K, baseline):  # (a bool mask)
-        # compiled: some forty torch ops on a few hundred points are ~0.45 ms of launch overhead per frame
+        # compiled: some forty torch ops on a few hundred points cost more in launches than in arithmetic
         return _predict_numba.expected_positions(keypoints.contiguous(), disparity[:, 0].contiguous(),
                                                  valid[:, 0].contiguous(), motion.contiguous(), K.contiguous(),
                                                  baseline.contiguous())
@@ -301,108 +298,84 @@ def _expected_positions(
 class EgoMotionRefiner(nn.Module):
     """Sub-pixel disparity for a stereo video with stereo matching run on a fraction of the frames.
 
-    ``out, state = refiner(left, right, K, baseline, state)``, once per frame, ``state=None`` on
-    the first. Stereo runs on frame 0, then every ``verify_every``-th frame; with
-    ``adaptive=True`` also when the predicted map's coverage or mean confidence drops below
-    ``min_coverage`` / ``min_confidence``; and always when the ego-motion of some batch item
-    could not be estimated (the output says so in ``stereo_ran`` and ``motion_ok``). Stereo
-    and the schedule act on the whole batch at once. Frames the method does not expect (swapped, covered, black
-    or noise images) are caught by the tests of ``egorefine.refine.health``: a collapse of the tracks counts as a
-    failed motion, stereo that fails wholesale is rejected, regions that disagree with stereo as a whole take it;
-    ``out.status`` says what happened to each item.
+    ``out, state = refiner(left, right, K, baseline, state)``, once per frame, ``state=None`` on the first
+    (PAPER.md, "The loop"): track the features, solve the ego-motion (eq. 2, 3, or the exact SE(3) model), predict
+    the disparity by moving every 3-D point (eq. 1) and, every ``verify_every``-th frame, correct the prediction
+    with fresh stereo (step 4). Stereo also runs where the ego-motion of some batch item failed and, with
+    ``adaptive=True``, where the prediction's coverage or confidence is low; it acts on the whole batch at once.
+    Frames the method does not expect (swapped, covered, black or noise images) are caught by the tests of
+    ``egorefine.refine.health``; ``out.status`` says what happened to each item. The reasons for the defaults, with
+    their measurements, are in docs/decisions.md.
+
+    Gradients: every stage has a torch path that autograd follows (the compiled CPU kernels run only where no
+    gradient is wanted, :func:`egorefine.core.use_compiled`). With default options the outputs are piecewise smooth
+    in the images, ``K``, the baseline and the learnable parameters: the stereo winner, the track search, the
+    z-buffer, the gates and every validity test are hard decisions, constant between their switching points.
+    ``differentiable=True`` softens the ones that can be softened (docs/gradients.md).
 
     Args:
-        max_disparity: stereo search range ``[min_disparity, max_disparity)``; predicted values outside it are
+        max_disparity: stereo search range ``[min_disparity, max_disparity)``, px; predicted values outside it are
             not valid (no stereo run could verify them).
         verify_every: run stereo every i-th frame (``i`` in the paper); 1 = every frame.
-        fusion: ``"paper"`` (gate/gain rule of PAPER.md, step 4) or ``"kalman"`` (per-pixel variance).
-        motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` or ``"exact"`` (SE(3) reprojection).
+        fusion: ``"paper"`` (the gate/gain rule of PAPER.md, step 4) or ``"kalman"`` (per-pixel variance).
+        motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` (RANSAC around it) or ``"exact"`` (SE(3)
+            reprojection; the default: first order is not enough at a metre per frame).
         gate, gain: the paper rule's 0.5 px gate and 0.4 gain.
-        adaptive, min_coverage, min_confidence: the adaptive verification schedule.
-        max_features, min_tracks: feature budget, and the live-track count under which detection re-runs.
-        splat: ``"hard"`` z-buffer splatting or ``"soft"`` (differentiable) in the prediction.
+        adaptive, min_coverage, min_confidence: extra stereo runs where the prediction's valid share or mean
+            confidence falls below these.
+        max_features, min_tracks: the feature budget, and the live-track count under which detection re-runs.
+        splat: ``"hard"`` (z-buffer) or ``"soft"`` (softmax) splatting in the prediction; None: hard, or soft with
+            ``differentiable=True``.
+        min_disparity, block_size, stereo_cost, aggregation, subpixel: passed to
+            :func:`egorefine.stereo.match_stereo` (its own defaults when None).
+        process_noise: Kalman mode, px^2 added to the carried variance per predicted frame.
+        kalman_gate, reset_after: Kalman mode treats a measurement more than ``kalman_gate`` standard deviations
+            from the prediction as an outlier and resets the pixel to it after ``reset_after`` such verifications in
+            a row. Defaults 1 and 1, stricter than :func:`~egorefine.refine.correct_disparity`'s own: with keyframe
+            prediction a disagreement is mostly the prediction's error (a depth edge placed to within a pixel, a
+            keyframe error magnified as its surface approaches), which its variance does not model.
         fill_cracks: look the prediction's holes up in the keyframe (:func:`~egorefine.refine.cracks.close_cracks`):
             surfaces magnified beyond the splat's tiling become valid, disocclusions stay holes.
-        min_disparity, block_size, stereo_cost, aggregation, subpixel: passed to
-            :func:`egorefine.stereo.match_stereo` (its defaults when None).
-
-    The paper's method as published is ``fusion="paper", motion_method="linear", subpixel=False``
-    (pixel-accurate block matching, equation (3), gate 0.5 px and gain 0.4). ``fusion="paper"`` alone
-    keeps the exact SE(3) motion and sub-pixel stereo of this library.
-        process_noise: variance (px^2) added per predicted frame in Kalman mode.
-        kalman_gate, reset_after: Kalman mode treats a measurement more than ``kalman_gate`` sigmas from the
-            prediction as an outlier, and resets the pixel to the measurement after ``reset_after`` of them in a row.
-            With keyframe prediction a disagreement is mostly the prediction's error: a depth edge placed to within
-            a pixel, or a keyframe stereo error magnified as its surface approaches, which the carried variance does
-            not model. So the defaults (1 sigma, reset at once) take the fresh measurement wherever it disagrees by
-            more than one standard deviation; they are stricter than
-            :func:`~egorefine.refine.correct_disparity`'s own defaults (3 sigmas, 2 in a row) on purpose. On the
-            refine benchmark's sequences (60 frames, seed 0; EPE / bad-0.5, mean of each rig's two sequences) at
-            verify_every=5, 1 sigma against 2: Kalman 0.0507/0.0062 against 0.0513/0.0067 on the paper rig; with
-            ``local_search=2, measure_holes=True`` (and the warped ``local_search_window`` of the time)
-            0.0553/0.0058 against 0.0556/0.0060 (paper rig) and 0.0939/0.0094 against 0.0944/0.0096 (KITTI-like);
-            at verify_every=1 within 0.0001 of each other. With the fronto window (the default), 1 sigma against 2:
-            0.0494/0.00527 against 0.0496/0.00536 (paper rig), 0.0966/0.00925 against 0.0970/0.00933 (KITTI-like).
-            0.5 sigma is worse (EPE 0.0584 with local search and holes, paper rig), 1.5 in between.
         edge_aware, edge_kernel: Kalman mode adds :func:`~egorefine.refine.correct.edge_variance` (the squared half
-            range of the prediction over an ``edge_kernel`` window) to the predicted variance at verification: at
-            the prediction's own depth edges (placed only to within a pixel by the splat) the measurement wins.
-        max_unverified_variance: Kalman mode, px^2: at verification, a predicted pixel that stereo rejected stays
-            valid only while its variance is at most this (None: always). The default, ``0.25^2``, asks for a
-            standard deviation of half the paper's 0.5 px gate. Such pixels leave the keyframe too, so they are not
-            predicted into the next frames. With keyframe prediction the carried variance includes the process noise
-            of every step since the last verification, so at ``verify_every >= 5`` nearly every prediction stereo
-            rejected is dropped; at 1 only the uncertain ones (edges, chains of unverified predictions).
-            Measured on the refine benchmark's four sequences (60 frames, seed 0; EPE / bad-0.5 / density, paper rig
-            then KITTI-like): at verify_every=5 0.059/0.010/0.987 and 0.123/0.026/0.971 without both rules,
-            0.051/0.007/0.979 and 0.113/0.022/0.960 with them; at 1, 0.048/0.008/0.998 and 0.096/0.015/0.996
-            become 0.044/0.005/0.992 and 0.091/0.012/0.987. The rules trade ~1 % of density for accuracy.
+            range of the prediction over an ``edge_kernel`` window) to the predicted variance at verification, so
+            that at the prediction's own depth edges the measurement wins.
+        max_unverified_variance: Kalman mode, px^2: at verification a predicted pixel that stereo did not measure
+            stays valid only while its variance is at most this (None: always). The default, ``0.25^2``, asks for a
+            standard deviation of half the paper's gate.
+        local_search: on frames without stereo, a residual match (:func:`~egorefine.stereo.match_residual`)
+            ``prediction +- local_search`` px around the valid predicted pixels, fused by the ``fusion`` rule; 0 (the
+            default, the paper's loop) turns it off. It costs ``2 local_search + 1`` cost planes instead of the
+            full range and catches keyframe errors that grow as the rig approaches a surface.
+        local_search_block: the residual search's window (odd, px); smaller than the full matcher's because it
+            only has to pin down a residual of a pixel or two, and blurs less of a depth edge.
+        local_search_window: ``"fronto"`` (the matcher's window at the integer disparities ``round(prediction) +
+            k``: the full matcher's decisions inside its band) or ``"warped"`` (each window pixel shifted by its own
+            prediction).
+        measure_holes, max_hole_variance, hole_background_margin: on frames without stereo, measure the pixels still
+            without a value (disocclusions, regions entering the view) with the matcher on the tiles where they are
+            dense (:func:`~egorefine.stereo.match_stereo_regions`); a value is taken where its variance is at most
+            ``max_hole_variance`` px^2 or it lies at most ``hole_background_margin`` px above the hole's background
+            fill (an uncovered region shows the background). Off by default: it costs most of a stereo run.
+        differentiable: the differentiable configuration: soft-argmin stereo (temperature ``temperature``), the
+            tracker's soft last step, soft splatting and a soft gate (``gate_softness``), each unless set
+            explicitly. For training; inference is faster and as accurate with the default hard decisions.
+        learnable: the fusion's settings become :class:`torch.nn.Parameter` s: ``gain_logit`` (``gain =
+            sigmoid``), ``log_gate``, ``log_process_noise``, ``log_noise_scale`` (a factor of the measurement
+            variance, 1 to start) and ``log_temperature`` (the soft matcher's). Stored unconstrained, so that no
+            optimiser step can leave a range; a non-finite parameter raises ``ValueRangeError``.
+        confidence_net: an ``nn.Module`` mapping ``(B, 3, H, W)`` (grey left image, measured disparity divided by
+            ``max_disparity``, measurement validity) to a positive ``(B, 1, H, W)`` scale of the measurement
+            variance (:class:`~egorefine.refine.ConfidenceNet`; clamped to ``[1e-3, 1e3]``; a wrong shape raises
+            ``ShapeError``, NaN or Inf ``ValueRangeError``). It acts on every fused measurement; in paper mode,
+            whose gain is fixed, only on the carried variance.
+        soft_tracking: the tracker's soft-argmax last step (None: with ``differentiable``).
+        gate_softness: logistic gates in the correction (:func:`~egorefine.refine.correct_disparity`; px in paper
+            mode, standard deviations in Kalman mode); None: hard gates, or 0.1 with ``differentiable``.
+        temperature: the soft-argmin matcher's temperature in cost units (None: the matcher's default for its
+            cost).
 
-        local_search: on frames without stereo, a residual match (:func:`~egorefine.stereo.match_residual`) searches
-            ``prediction +- local_search`` px around the valid predicted pixels with the matcher's cost and corrects
-            the prediction with it (the ``fusion`` rule). 0 (the default) turns it off: the paper's loop. Frames
-            given without a right image skip it. It costs ``2 local_search + 1`` cost planes instead of the full
-            range (5 of 128 on the KITTI-like rig) and catches keyframe errors that grow as the rig approaches a
-            surface (a disparity error scales with the square of the magnification), which prediction alone
-            carries on. Hole-filled pixels are not searched: on the benchmark scenes their background fill made
-            poor priors (EPE 0.064 to 0.083 px on the corridor sequence when they were; warped window).
-        local_search_window: the residual search's window (``window`` of :func:`~egorefine.stereo.match_residual`):
-            ``"fronto"`` scores the matcher's fronto-parallel window at the integer disparities
-            ``round(prediction) + k``, so inside its band it makes the full matcher's decisions; ``"warped"`` shifts
-            every window pixel by its own prediction (the right image sampled linearly). On the refine benchmark's
-            sequences (60 frames, seed 0, ``local_search=2, measure_holes=True``, verify every 5; EPE / bad-0.5 /
-            density, mean of each rig's two) ``"fronto"`` gave 0.0494 / 0.00527 / 0.9910 against ``"warped"``'s
-            0.0553 / 0.00577 / 0.9910 on the paper rig, and 0.0966 / 0.00925 / 0.9854 against 0.0939 / 0.00939 /
-            0.9854 on the KITTI-like one. On the paper rig's search frames (the first 30 frames of each sequence), on
-            the pixels that both it and per-frame stereo measured, the warped measurement had bad-0.5 0.0063 / 0.0042
-            (corridor / hall) against stereo's 0.0050 / 0.0038, the fronto one 0.0049 / 0.0036 against 0.0049 /
-            0.0037. We attribute the warped window's excess to its linear sampling, which blurs the right window by
-            an amount that depends on the prediction's fraction; it keeps an edge on the KITTI-like road's steep
-            slants.
-        local_search_block: the residual search's SAD window (odd). It is smaller than the full matcher's 9 px by
-            default: the window only has to pin down a residual of a pixel or two (a full search must tell dozens of
-            candidates apart), and a smaller window blurs less of a depth edge into its neighbours. With the fronto
-            window, on the same sequences, 9 px instead of 7 gave 0.0484 / 0.00542 on the paper rig (EPE / bad-0.5)
-            and 0.1017 / 0.0128 on the KITTI-like one. (With the warped window, 31 frames: 7 px instead of 9
-            lowered bad-0.5 from 0.0068 / 0.0072 / 0.0101 / 0.0106 to 0.0065 / 0.0070 / 0.0090 / 0.0098.)
-        measure_holes, max_hole_variance, hole_background_margin: on frames without stereo, the pixels still without
-            a value (disocclusions, regions entering the view) are measured by the matcher on the regions where they
-            are dense (:func:`~egorefine.stereo.match_stereo_regions`, 6 px tiles at least half holes). A value is taken
-            where its variance is at most ``max_hole_variance`` px^2, or where it lies at most
-            ``hole_background_margin`` px above the hole's background fill (None: variance only). An uncovered region
-            shows the background, and the matcher's usual error there reads the foreground's disparity: values on the
-            background side are plausible even where the cost curve is flat. Off by default: on the refine
-            benchmark's four sequences (60 frames, with ``local_search=2``, verify every 5) it raised density from
-            0.975 / 0.983 / 0.975 / 0.945 to 0.987 / 0.995 / 0.988 / 0.983, at or above per-frame stereo's on each
-            (0.984 / 0.994 / 0.988 / 0.980), while EPE rose by 0.001 to 0.005 px and bad-0.5 by 0.0002 to 0.0007,
-            for 5 to 17 ms per frame (60 to 95 % of a full stereo run: the holes are spread over the frame).
-            Stricter acceptance trades density for bad-0.5 along one curve (paper rig, the same sequences, mean of
-            two, verify every 5, measured with the warped ``local_search_window`` of the time): the defaults gave
-            0.0058 at density 0.9910, ``hole_background_margin=None`` 0.0055 at 0.9889, with
-            ``max_hole_variance=0.15`` as well 0.0054 at 0.9873; per-frame stereo has 0.0054 at 0.9886. With the
-            fronto window the defaults give 0.0053 at 0.9910. The defaults keep the KITTI-like rig's density above
-            per-frame stereo's.
-            Frames given without a right image skip it.
+    The paper's method as published is ``fusion="paper", motion_method="linear", subpixel=False`` (pixel-accurate
+    block matching, equation (3), gate 0.5 px and gain 0.4).
 
     Example:
         >>> from egorefine.data import render_sequence
@@ -722,8 +695,8 @@ class EgoMotionRefiner(nn.Module):
         # The search starts at the constant-velocity prediction (from frame 2 on: the first step has no motion yet,
         # and a zero-flow prediction would only cost a wasted first search). Matches found next to their prediction
         # skip the forward-backward round trip (the others go back over one level, search_radius wide: a wrong match
-        # then lands away from its start; the full coarse-to-fine way back costs ~20 % more tracking time here for
-        # no measured accuracy), and each frame's pyramid is built once and reused as `prev`.
+        # then lands away from its start; the full coarse-to-fine way back costs more time and gains no accuracy,
+        # docs/decisions.md), and each frame's pyramid is built once and reused as `prev`.
         expected = None
         if state.frame > 0:
             expected = _expected_positions(state.keypoints, state.disparity, state.valid, state.motion, K, baseline)

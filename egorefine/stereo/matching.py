@@ -220,9 +220,10 @@ def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, to
         second = code.amin(dim=1, keepdim=True).view(torch.float32)
         valid &= second > c0 * (1 + opts["uniqueness_ratio"])
     # variance: quantisation floor plus the spread of a noisy minimum, larger when the
-    # minimum is shallow (small curvature) relative to its own cost level (heuristic)
-    kd = curvature.detach().clamp_min(0)
-    variance = _QUANTISATION_VARIANCE + 0.25 * ((c0 + opts["cost_floor"] * scale) / (kd + eps)) ** 2
+    # minimum is shallow (small curvature) relative to its own cost level (heuristic; smooth in the costs, so a
+    # loss through a Kalman gain reaches the images by it too)
+    kd = curvature.clamp_min(0)
+    variance = _QUANTISATION_VARIANCE + 0.25 * ((c_best + opts["cost_floor"] * scale) / (kd + eps)) ** 2
     variance = torch.where(interior, variance.clamp_max(INVALID_VARIANCE), torch.ones_like(variance))
     return disparity, valid, variance
 

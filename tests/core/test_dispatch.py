@@ -174,15 +174,21 @@ def test_region_matching_reaches_the_images(seq):
     assert all(_reaches(g) for g in _grad(out.disparity, left, right))
 
 
-def test_detection_is_a_hard_selection_and_replenish_keeps_live_tracks(seq):
+def test_detection_selects_hard_and_its_subpixel_step_reaches_the_image(seq):
     image = seq.left[:1].clone().requires_grad_(True)
     kp, w = detect(image, max_features=32, grid=(2, 2))
-    assert w.sum() > 10 and not kp.requires_grad and not w.requires_grad  # documented: no gradient
-    live_kp = kp[:, :8].clone().requires_grad_(True)
+    assert w.sum() > 10 and kp.requires_grad and not w.requires_grad  # the selection is piecewise constant
+    assert _reaches(_grad(kp, image)[0])
+    with torch.no_grad():  # the same positions as inference (compiled where it applies)
+        fast, fast_w = detect(image, max_features=32, grid=(2, 2))
+    assert torch.equal(fast_w, w)
+    torch.testing.assert_close(fast, kp.detach(), atol=1e-3, rtol=0)
+    live_kp = kp[:, :8].detach().clone().requires_grad_(True)
     new_kp, new_w = replenish(image, live_kp, torch.ones(1, 8), max_features=32)
     assert new_w.sum() > 8
     (g,) = _grad(new_kp, live_kp)
     assert _reaches(g) and torch.all(g[0] > 0)  # live tracks pass through unchanged: d(new)/d(live) = 1 there
+    assert _reaches(_grad(new_kp[:, 8:], image)[0])  # and the fresh ones carry their detection's graph
 
 
 def test_pyramid_and_tracking_reach_images_and_keypoints(seq):
@@ -341,10 +347,9 @@ def test_refiner_forward_reaches_the_first_left_image(seq, fusion):
     assert [o.stereo_ran for o in outs] == [True, False, False]
     for o in outs:
         assert _reaches(_grad(o.disparity, left0)[0])
-    # the matcher's variance is a heuristic of its detached costs: frame 0's confidence has no graph; a prediction's
-    # carries the splat's (backpropagating through it raised)
-    assert not outs[0].confidence.requires_grad
-    for o in outs[1:]:
+    # the matcher's variance is smooth in its costs, and a prediction's carries the splat's (backpropagating
+    # through it raised): every frame's confidence reaches the first image
+    for o in outs:
         assert _reaches(_grad(o.confidence, left0)[0])
 
 
