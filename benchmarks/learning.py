@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import markdown_table, update_readme, write_json  # noqa: E402
 
 from egorefine.data import render_sequence  # noqa: E402
-from egorefine.refine import ConfidenceNet, EgoMotionRefiner  # noqa: E402
+from egorefine.refine import ConfidenceNet, CorrectionOptions, EgoMotionRefiner  # noqa: E402
 
 VERIFY_EVERY = 5
 TRAIN_SCENES = [("corridor", "forward"), ("street", "lateral"), ("corridor", "turn"), ("street", "shaky")]
@@ -48,7 +48,8 @@ def make_refiner(max_disparity: int, learnable: bool = True) -> EgoMotionRefiner
     if not learnable:  # the untrained defaults
         return EgoMotionRefiner(max_disparity=max_disparity, verify_every=VERIFY_EVERY, fusion="kalman")
     return EgoMotionRefiner(max_disparity=max_disparity, verify_every=VERIFY_EVERY, fusion="kalman",
-                            learnable=True, confidence_net=ConfidenceNet(), gate_softness=GATE_SOFTNESS)
+                            learnable=True, confidence_net=ConfidenceNet(),
+                            correction=CorrectionOptions(gate_softness=GATE_SOFTNESS))
 
 
 def run(refiner, seq, grad: bool):
@@ -126,7 +127,7 @@ def main() -> None:
         loss = clip_loss(run(refiner, seq, grad=True), seq)
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         print(f"step {step + 1}/{steps}: loss {losses[-1]:.4f} px "
               f"(q {float(refiner.process_noise):.4f}, noise scale {float(refiner.noise_scale):.3f})",
               file=sys.stderr)
@@ -162,7 +163,8 @@ def main() -> None:
     params = ", ".join(f"{n} {a:.3f} -> {b:.3f}" for n, (a, b) in changes.items())
     text = f"{header}\n\n{table}\n\nScalar parameters, start -> end: {params}."
     print(text)
-    payload = {"before": before, "untrained_soft_gate": untrained, "after": after, "losses": losses, "parameters": changes, "steps": steps,
+    payload = {"before": before, "untrained_soft_gate": untrained, "after": after, "losses": losses,
+               "parameters": changes, "steps": steps,
                "size": [W, H], "clip": args.clip, "train_seconds": train_s, "relative_epe_gain": gain,
                "target_met": gain >= 0.10, "quick": args.quick}
     if args.out is not None:  # (a test's or a trial's folder: the README stays as the full run left it)

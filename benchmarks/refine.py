@@ -53,7 +53,7 @@ from _common import RESULTS, markdown_table, set_threads, update_readme, write_j
 
 from egorefine.data import StereoSequence, render_sequence  # noqa: E402
 from egorefine.metrics import distinct_levels, evaluate_disparity, temporal_consistency  # noqa: E402
-from egorefine.refine import EgoMotionRefiner  # noqa: E402
+from egorefine.refine import EgoMotionRefiner, SearchOptions, StereoOptions  # noqa: E402
 from egorefine.stereo import block_matching  # noqa: E402
 
 # Seeds 0-99 are for tuning (tests, experiments, --tune); the reported run uses REPORT_SEED_BASE + i.
@@ -209,9 +209,9 @@ def methods_for(max_disp: int, holes: bool) -> dict[str, Callable[[StereoSequenc
     for name, fn in opencv_matchers(max_disp).items():
         methods[name] = lambda seq, fn=fn: run_per_frame(fn, seq)
     methods[KALMAN] = refiner(fusion="kalman")  # every other option at its default: the target row
-    methods[PAPER] = refiner(fusion="paper", motion_method="linear", subpixel=False)
+    methods[PAPER] = refiner(fusion="paper", motion_method="linear", stereo=StereoOptions(subpixel=False))
     if holes:
-        methods[HOLES] = refiner(fusion="kalman", local_search=2, measure_holes=True)
+        methods[HOLES] = refiner(fusion="kalman", search=SearchOptions(local_search=2, measure_holes=True))
     return methods
 
 

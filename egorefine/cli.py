@@ -154,7 +154,7 @@ def _figure(save, *args, **kwargs) -> Path | None:
 def _demo(args: argparse.Namespace) -> int:
     from .data import render_sequence
     from .metrics import compose_motions, distinct_levels, evaluate_disparity, evaluate_trajectory
-    from .refine import refine_sequence
+    from .refine import StereoOptions, refine_sequence
     from .stereo import block_matching
     from .viz import save_maps_figure, save_row_figure, save_trajectory_figure
 
@@ -181,7 +181,7 @@ def _demo(args: argparse.Namespace) -> int:
         block_matching(seq.left[:1], seq.right[:1], args.max_disparity, subpixel=subpixel)
     for fusion, (motion, subpixel) in modes.items():
         refine_sequence(seq.left[warm], seq.right[warm], K, baseline, verify_every=2, fusion=fusion,
-                        motion_method=motion, subpixel=subpixel, max_disparity=args.max_disparity)
+                        motion_method=motion, stereo=StereoOptions(subpixel=subpixel), max_disparity=args.max_disparity)
 
     results: dict[str, tuple[dict[str, float], float, int, torch.Tensor, torch.Tensor]] = {}
     for name, subpixel in (("stereo per frame, integer", False), ("stereo per frame, sub-pixel", True)):
@@ -195,7 +195,8 @@ def _demo(args: argparse.Namespace) -> int:
         # Paper mode as published: pixel-accurate stereo and the linear motion solve (eq. 3).
         t0 = time.perf_counter()
         res = refine_sequence(seq.left, seq.right, K, baseline, verify_every=args.verify_every, fusion=fusion,
-                              motion_method=motion, subpixel=subpixel, max_disparity=args.max_disparity,
+                              motion_method=motion, stereo=StereoOptions(subpixel=subpixel),
+                              max_disparity=args.max_disparity,
                               show_progress=not args.quiet)
         ms = (time.perf_counter() - t0) * 1e3 / T
         stereo = "integer" if not subpixel else "sub-pixel"
@@ -343,7 +344,7 @@ def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dic
 
 def _run(args: argparse.Namespace) -> int:
     from .data import open_recording, write_confidence, write_disparity, write_mask, write_preview
-    from .refine import EgoMotionRefiner
+    from .refine import EgoMotionRefiner, StereoOptions
     from .viz import colorize_disparity
 
     if args.threads is not None:
@@ -362,7 +363,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueRangeError(f"--max-disparity: expected less than the image width {W}, got {args.max_disparity}")
     cost, _, aggregation = args.matcher.partition("+")
     refiner = EgoMotionRefiner(max_disparity=args.max_disparity, verify_every=args.verify_every, fusion=args.fusion,
-                               motion_method=args.motion, stereo_cost=cost, aggregation=aggregation or "box")
+                               motion_method=args.motion,
+                               stereo=StereoOptions(cost=cost, aggregation=aggregation or "box"))
     K = rec.K.to(device=device, dtype=torch.float32)[None]
     baseline = torch.tensor([float(rec.baseline)], device=device)
     t_open = time.perf_counter() - t_start

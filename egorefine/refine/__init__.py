@@ -4,6 +4,14 @@ from .correct import CorrectDisparity, Correction, correct_disparity
 from .cracks import close_cracks
 from .health import Status
 from .learning import CONFIDENCE_INPUTS, ConfidenceNet
+from .options import (
+    CorrectionOptions,
+    PredictionOptions,
+    ScheduleOptions,
+    SearchOptions,
+    StereoOptions,
+    TrackingOptions,
+)
 from .predict import PredictDisparity, Prediction, fill_holes_background, predict_disparity
 from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
 
@@ -20,6 +28,12 @@ __all__ = [
     "fill_holes_background",
     "predict_disparity",
     "EgoMotionRefiner",
+    "StereoOptions",
+    "TrackingOptions",
+    "PredictionOptions",
+    "CorrectionOptions",
+    "SearchOptions",
+    "ScheduleOptions",
     "RefinerOutput",
     "RefinerState",
     "SequenceResult",

@@ -4,7 +4,8 @@ take-over of hole measurements, :func:`take_measurements`), compiled with numba.
 One loop over the pixels with the torch path's float32 operations in its order (clamps, innovation,
 gate, gain, reset, hole take-over, variance floor, validity): the outputs are equal to the torch
 path's bit for bit (a test compares them). In torch the rule is some twenty full-map operations,
-half of them ``torch.where`` on boolean masks, which is slow on the CPU; here it is one pass. Rows run as nogil bands on :class:`egorefine.core._jit.Workers`.
+half of them ``torch.where`` on boolean masks, which is slow on the CPU; here it is one pass.
+Rows run as nogil bands on :class:`egorefine.core._jit.Workers`.
 """
 
 from __future__ import annotations

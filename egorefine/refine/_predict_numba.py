@@ -3,7 +3,8 @@
 :func:`egorefine.refine.predict_disparity` in hard mode with refinement is about 30 small torch
 passes over the image (moving the points, an ``amax`` scatter, the 3x3 z-buffer maximum, the
 gathered check, the refinement's four gathered corners, hole filling), each one reading and
-writing full-size maps, the largest part of the refiner's loop on the CPU. Every target pixel's work depends only on its own values and a few gathered
+writing full-size maps, the largest part of the refiner's loop on the CPU. Every target pixel's work
+depends only on its own values and a few gathered
 ones, so here it is three loops:
 
 1. (row bands on threads) move every source point (PAPER.md eq. 1 in inverse-depth form), write the

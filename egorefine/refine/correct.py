@@ -291,7 +291,8 @@ def correct_disparity(
         R = torch.full_like(e, QUANTISATION_VARIANCE) if measured_variance is None else measured_variance.to(e.dtype)
         count = torch.zeros_like(e) if outlier_count is None else outlier_count.to(e.dtype)
         d, var, valid, cnt = _fuse_numba.kalman_fuse(
-            e, s, _as_bool(measured_valid, e), _as_bool(predicted_valid, e), P, R, count, float(kalman_gate), reset_after,
+            e, s, _as_bool(measured_valid, e), _as_bool(predicted_valid, e), P, R, count, float(kalman_gate),
+            reset_after,
             min_variance, max_unverified_variance)
         return Correction(d, var, valid, cnt if outlier_count is None else cnt.to(outlier_count.dtype))
     m_ok = _as_bool(measured_valid, e)

@@ -336,7 +336,8 @@ def predict_disparity(
         if valid.dtype != torch.bool:
             valid = valid > 0.5
     check_same_device(disparity, "disparity", motion=motion, K=K, baseline=baseline, variance=variance, valid=valid)
-    process_noise, temperature = check_setting(process_noise, "process_noise"), check_setting(temperature, "temperature")
+    process_noise = check_setting(process_noise, "process_noise")
+    temperature = check_setting(temperature, "temperature")
     learnable = [t for t in (process_noise, temperature) if isinstance(t, torch.Tensor)]  # (those needing a gradient)
     if temperature <= 0 or process_noise < 0 or hole_variance <= 0 or surface_tolerance <= 0:
         raise ValueRangeError(
@@ -351,7 +352,8 @@ def predict_disparity(
     # the compiled splat implements hard mode with refinement; it reads every input in the disparity's dtype
     hard_refined = mode == "hard" and refine_iterations > 0
     compiled = hard_refined and use_compiled(
-        disparity, valid, *learnable, *(t.to(disparity.dtype) for t in (variance, motion, K, baseline) if t is not None))
+        disparity, valid, *learnable,
+        *(t.to(disparity.dtype) for t in (variance, motion, K, baseline) if t is not None))
     if not compiled:
         check_finite(disparity, "disparity")  # (the compiled path tests it inside its kernels)
     settings = (mode, process_noise, hole_variance, fill_holes, temperature, refine_iterations, surface_tolerance)

@@ -17,6 +17,7 @@ saved, inspected or detached.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -56,6 +57,15 @@ from .health import (
     flag,
     stereo_failed,
     tracking_collapsed,
+)
+from .options import (
+    CorrectionOptions,
+    PredictionOptions,
+    ScheduleOptions,
+    SearchOptions,
+    StereoOptions,
+    TrackingOptions,
+    resolve_groups,
 )
 from .predict import Prediction, predict_disparity
 
@@ -320,45 +330,19 @@ class EgoMotionRefiner(nn.Module):
         fusion: ``"paper"`` (the gate/gain rule of PAPER.md, step 4) or ``"kalman"`` (per-pixel variance).
         motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` (RANSAC around it) or ``"exact"`` (SE(3)
             reprojection; the default: first order is not enough at a metre per frame).
-        gate, gain: the paper rule's 0.5 px gate and 0.4 gain.
-        adaptive, min_coverage, min_confidence: extra stereo runs where the prediction's valid share or mean
-            confidence falls below these.
-        max_features, min_tracks: the feature budget, and the live-track count under which detection re-runs.
-        splat: ``"hard"`` (z-buffer) or ``"soft"`` (softmax) splatting in the prediction; None: hard, or soft with
-            ``differentiable=True``.
-        min_disparity, block_size, stereo_cost, aggregation, subpixel: passed to
-            :func:`egorefine.stereo.match_stereo` (its own defaults when None).
-        process_noise: Kalman mode, px^2 added to the carried variance per predicted frame.
-        kalman_gate, reset_after: Kalman mode treats a measurement more than ``kalman_gate`` standard deviations
-            from the prediction as an outlier and resets the pixel to it after ``reset_after`` such verifications in
-            a row. Defaults 1 and 1, stricter than :func:`~egorefine.refine.correct_disparity`'s own: with keyframe
-            prediction a disagreement is mostly the prediction's error (a depth edge placed to within a pixel, a
-            keyframe error magnified as its surface approaches), which its variance does not model.
-        fill_cracks: look the prediction's holes up in the keyframe (:func:`~egorefine.refine.cracks.close_cracks`):
-            surfaces magnified beyond the splat's tiling become valid, disocclusions stay holes.
-        edge_aware, edge_kernel: Kalman mode adds :func:`~egorefine.refine.correct.edge_variance` (the squared half
-            range of the prediction over an ``edge_kernel`` window) to the predicted variance at verification, so
-            that at the prediction's own depth edges the measurement wins.
-        max_unverified_variance: Kalman mode, px^2: at verification a predicted pixel that stereo did not measure
-            stays valid only while its variance is at most this (None: always). The default, ``0.25^2``, asks for a
-            standard deviation of half the paper's gate.
-        local_search: on frames without stereo, a residual match (:func:`~egorefine.stereo.match_residual`)
-            ``prediction +- local_search`` px around the valid predicted pixels, fused by the ``fusion`` rule; 0 (the
-            default, the paper's loop) turns it off. It costs ``2 local_search + 1`` cost planes instead of the
-            full range and catches keyframe errors that grow as the rig approaches a surface.
-        local_search_block: the residual search's window (odd, px); smaller than the full matcher's because it
-            only has to pin down a residual of a pixel or two, and blurs less of a depth edge.
-        local_search_window: ``"fronto"`` (the matcher's window at the integer disparities ``round(prediction) +
-            k``: the full matcher's decisions inside its band) or ``"warped"`` (each window pixel shifted by its own
-            prediction).
-        measure_holes, max_hole_variance, hole_background_margin: on frames without stereo, measure the pixels still
-            without a value (disocclusions, regions entering the view) with the matcher on the tiles where they are
-            dense (:func:`~egorefine.stereo.match_stereo_regions`); a value is taken where its variance is at most
-            ``max_hole_variance`` px^2 or it lies at most ``hole_background_margin`` px above the hole's background
-            fill (an uncovered region shows the background). Off by default: it costs most of a stereo run.
-        differentiable: the differentiable configuration: soft-argmin stereo (temperature ``temperature``), the
-            tracker's soft last step, soft splatting and a soft gate (``gate_softness``), each unless set
-            explicitly. For training; inference is faster and as accurate with the default hard decisions.
+        stereo: :class:`~egorefine.refine.options.StereoOptions`, the verification matcher (``min_disparity``,
+            block, cost, aggregation, sub-pixel fit, soft-argmin temperature).
+        tracking: :class:`~egorefine.refine.options.TrackingOptions`, the feature budget and the tracker.
+        prediction: :class:`~egorefine.refine.options.PredictionOptions`, the splat, crack closing, process noise.
+        correction: :class:`~egorefine.refine.options.CorrectionOptions`, the paper rule's gate and gain, the Kalman
+            rule's gate, reset, edge and unverified variances, soft gates.
+        search: :class:`~egorefine.refine.options.SearchOptions`, measurements between verifications (residual
+            search, hole measurement; off by default: the paper's loop).
+        schedule: :class:`~egorefine.refine.options.ScheduleOptions`, extra stereo runs where the prediction's
+            coverage or confidence is low (off by default).
+        differentiable: the differentiable configuration: soft-argmin stereo (``stereo.temperature``), the
+            tracker's soft last step, soft splatting and a soft gate (``correction.gate_softness``), each unless
+            set explicitly. For training; inference is faster with the default hard decisions.
         learnable: the fusion's settings become :class:`torch.nn.Parameter` s: ``gain_logit`` (``gain =
             sigmoid``), ``log_gate``, ``log_process_noise``, ``log_noise_scale`` (a factor of the measurement
             variance, 1 to start) and ``log_temperature`` (the soft matcher's). Stored unconstrained, so that no
@@ -368,19 +352,19 @@ class EgoMotionRefiner(nn.Module):
             variance (:class:`~egorefine.refine.ConfidenceNet`; clamped to ``[1e-3, 1e3]``; a wrong shape raises
             ``ShapeError``, NaN or Inf ``ValueRangeError``). It acts on every fused measurement; in paper mode,
             whose gain is fixed, only on the carried variance.
-        soft_tracking: the tracker's soft-argmax last step (None: with ``differentiable``).
-        gate_softness: logistic gates in the correction (:func:`~egorefine.refine.correct_disparity`; px in paper
-            mode, standard deviations in Kalman mode); None: hard gates, or 0.1 with ``differentiable``.
-        temperature: the soft-argmin matcher's temperature in cost units (None: the matcher's default for its
-            cost).
+        **legacy: the flat keywords of earlier releases (``max_features=``, ``local_search=``, ...; see
+            :data:`~egorefine.refine.options.LEGACY_KEYWORDS`): still accepted for one release, with a
+            ``DeprecationWarning`` naming the group to use.
 
-    The paper's method as published is ``fusion="paper", motion_method="linear", subpixel=False`` (pixel-accurate
-    block matching, equation (3), gate 0.5 px and gain 0.4).
+    The paper's method as published is ``fusion="paper", motion_method="linear",
+    stereo=StereoOptions(subpixel=False)`` (pixel-accurate block matching, equation (3), gate 0.5 px, gain 0.4).
 
     Example:
         >>> from egorefine.data import render_sequence
         >>> seq = render_sequence(num_frames=3, height=60, width=80)
-        >>> refiner = EgoMotionRefiner(max_disparity=16, verify_every=2, max_features=64, min_tracks=16)
+        >>> from egorefine.refine import TrackingOptions
+        >>> refiner = EgoMotionRefiner(max_disparity=16, verify_every=2,
+        ...                            tracking=TrackingOptions(max_features=64, min_tracks=16))
         >>> K, b = seq.K[None], torch.tensor([seq.baseline])
         >>> state = None
         >>> for t in range(3):
@@ -395,134 +379,84 @@ class EgoMotionRefiner(nn.Module):
         verify_every: int = 5,
         fusion: str = "paper",
         motion_method: str = "exact",
-        gate: float = 0.5,
-        gain: float = 0.4,
-        adaptive: bool = False,
-        min_coverage: float = 0.85,
-        min_confidence: float = 0.5,
-        max_features: int = 500,
-        min_tracks: int = 200,
-        splat: str | None = None,
-        min_disparity: int = 0,
-        block_size: int | None = None,
-        stereo_cost: str | None = None,
-        aggregation: str | None = None,
-        subpixel: bool | None = None,
-        process_noise: float = 0.01,
-        kalman_gate: float = 1.0,
-        reset_after: int = 1,
-        fill_cracks: bool = True,
-        edge_aware: bool = True,
-        max_unverified_variance: float | None = 0.0625,
-        edge_kernel: int = 3,
-        local_search: int = 0,
-        local_search_block: int = 7,
-        local_search_window: str = "fronto",
-        measure_holes: bool = False,
-        max_hole_variance: float = 0.2,
-        hole_background_margin: float | None = 0.5,
+        *,
+        stereo: StereoOptions | None = None,
+        tracking: TrackingOptions | None = None,
+        prediction: PredictionOptions | None = None,
+        correction: CorrectionOptions | None = None,
+        search: SearchOptions | None = None,
+        schedule: ScheduleOptions | None = None,
         differentiable: bool = False,
         learnable: bool = False,
         confidence_net: nn.Module | None = None,
-        soft_tracking: bool | None = None,
-        gate_softness: float | None = None,
-        temperature: float | None = None,
+        **legacy,
     ) -> None:
         super().__init__()
         check_choice(fusion, ("paper", "kalman"), "fusion")
         check_choice(motion_method, ("linear", "robust", "exact"), "motion_method")
-        self.differentiable = bool(differentiable)
-        # the differentiable preset: each of its parts unless the caller chose otherwise
-        splat = ("soft" if self.differentiable else "hard") if splat is None else splat
-        soft_tracking = self.differentiable if soft_tracking is None else bool(soft_tracking)
-        if gate_softness is None and self.differentiable:
-            gate_softness = _GATE_SOFTNESS
-        check_choice(splat, ("hard", "soft"), "splat")
-        if gate_softness is not None and not float(gate_softness) > 0:
-            raise ValueRangeError(f"gate_softness: expected > 0 or None, got {gate_softness}")
-        if temperature is not None and not float(temperature) > 0:
-            raise ValueRangeError(f"temperature: expected > 0 or None, got {temperature}")
-        if confidence_net is not None and not isinstance(confidence_net, nn.Module):
-            raise ValueRangeError(f"confidence_net: expected an nn.Module or None, got {type(confidence_net).__name__}")
-        check_choice(local_search_window, ("fronto", "warped"), "local_search_window")
         if int(verify_every) < 1:
             raise ValueRangeError(f"verify_every: expected an integer >= 1, got {verify_every}")
-        for name, value, low in (("gate", gate, 0.0), ("process_noise", process_noise, 0.0),
-                                 ("kalman_gate", kalman_gate, 1e-12), ("min_coverage", min_coverage, 0.0),
-                                 ("min_confidence", min_confidence, 0.0)):
-            if not float(value) >= low:
-                raise ValueRangeError(f"{name}: expected a number >= {low:g}, got {value}")
-        if not 0.0 < float(gain) <= 1.0:
-            raise ValueRangeError(f"gain: expected 0 < gain <= 1, got {gain}")
-        if int(reset_after) < 1 or int(max_features) < 1 or int(min_tracks) < 0:
+        groups = resolve_groups({"stereo": stereo, "tracking": tracking, "prediction": prediction,
+                                 "correction": correction, "search": search, "schedule": schedule},
+                                legacy, type(self).__name__)
+        stereo, tracking, prediction = groups["stereo"], groups["tracking"], groups["prediction"]
+        correction, search, schedule = groups["correction"], groups["search"], groups["schedule"]
+        if int(max_disparity) <= stereo.min_disparity:
             raise ValueRangeError(
-                f"reset_after >= 1, max_features >= 1, min_tracks >= 0 expected, got {reset_after}, "
-                f"{max_features}, {min_tracks}"
-            )
-        if max_unverified_variance is not None and not float(max_unverified_variance) > 0:
-            raise ValueRangeError(f"max_unverified_variance: expected > 0 or None, got {max_unverified_variance}")
-        if int(edge_kernel) < 1 or int(edge_kernel) % 2 == 0:
-            raise ValueRangeError(f"edge_kernel: expected a positive odd integer, got {edge_kernel}")
-        if int(local_search) != local_search or local_search < 0 or local_search == 1:
-            raise ValueRangeError(f"local_search: expected 0 (off) or an integer >= 2, got {local_search}")
-        if int(local_search_block) != local_search_block or local_search_block < 1 or local_search_block % 2 == 0:
-            raise ValueRangeError(f"local_search_block: expected a positive odd integer, got {local_search_block}")
-        if not float(max_hole_variance) > 0:
-            raise ValueRangeError(f"max_hole_variance: expected > 0, got {max_hole_variance}")
-        if hole_background_margin is not None and not float(hole_background_margin) >= 0:
-            raise ValueRangeError(f"hole_background_margin: expected >= 0 or None, got {hole_background_margin}")
-        if int(max_disparity) <= int(min_disparity):
-            raise ValueRangeError(f"max_disparity: must exceed min_disparity={min_disparity}, got {max_disparity}")
+                f"max_disparity: must exceed min_disparity={stereo.min_disparity}, got {max_disparity}")
+        if confidence_net is not None and not isinstance(confidence_net, nn.Module):
+            raise ValueRangeError(f"confidence_net: expected an nn.Module or None, got {type(confidence_net).__name__}")
+        self.differentiable = bool(differentiable)
+        # the differentiable preset: each of its parts unless the caller chose otherwise
+        if self.differentiable:
+            prediction = dataclasses.replace(prediction, splat=prediction.splat or "soft")
+            tracking = dataclasses.replace(tracking, soft=True if tracking.soft is None else tracking.soft)
+            if correction.gate_softness is None:
+                correction = dataclasses.replace(correction, gate_softness=_GATE_SOFTNESS)
+        prediction = dataclasses.replace(prediction, splat=prediction.splat or "hard")
+        tracking = dataclasses.replace(tracking, soft=bool(tracking.soft))
+        self.stereo, self.tracking, self.prediction = stereo, tracking, prediction
+        self.correction, self.search, self.schedule = correction, search, schedule
+
         self.max_disparity = int(max_disparity)
-        self.min_disparity = int(min_disparity)
+        self.min_disparity = int(stereo.min_disparity)
         self.verify_every = int(verify_every)
         self.fusion = fusion
         self.motion_method = motion_method
-        self.adaptive = bool(adaptive)
-        self.min_coverage = float(min_coverage)
-        self.min_confidence = float(min_confidence)
-        self.max_features = int(max_features)
-        self.min_tracks = int(min_tracks)
-        self.splat = splat
-        self.soft_tracking = soft_tracking
-        self.gate_softness = None if gate_softness is None else float(gate_softness)
-        self.kalman_gate = float(kalman_gate)
-        self.reset_after = int(reset_after)
-        self.fill_cracks = bool(fill_cracks)
-        self.edge_aware = bool(edge_aware)
-        self.max_unverified_variance = None if max_unverified_variance is None else float(max_unverified_variance)
-        self.edge_kernel = int(edge_kernel)
-        self.local_search = int(local_search)
-        self.local_search_block = int(local_search_block)
-        self.local_search_window = local_search_window
-        self.measure_holes = bool(measure_holes)
-        self.max_hole_variance = float(max_hole_variance)
-        self.hole_background_margin = None if hole_background_margin is None else float(hole_background_margin)
-        # Only the matcher options the caller set are passed on: the matcher's own defaults apply otherwise.
-        self.stereo_options = {
-            k: v
-            for k, v in {
-                "block_size": block_size, "cost": stereo_cost, "aggregation": aggregation, "subpixel": subpixel
-            }.items()
-            if v is not None
-        }
+        # the groups' fields as the loop reads them
+        self.adaptive, self.min_coverage = schedule.adaptive, float(schedule.min_coverage)
+        self.min_confidence = float(schedule.min_confidence)
+        self.max_features, self.min_tracks = int(tracking.max_features), int(tracking.min_tracks)
+        self.soft_tracking = tracking.soft
+        self.splat, self.fill_cracks = prediction.splat, bool(prediction.fill_cracks)
+        self.kalman_gate, self.reset_after = float(correction.kalman_gate), int(correction.reset_after)
+        self.edge_aware, self.edge_kernel = bool(correction.edge_aware), int(correction.edge_kernel)
+        mu = correction.max_unverified_variance
+        self.max_unverified_variance = None if mu is None else float(mu)
+        self.gate_softness = None if correction.gate_softness is None else float(correction.gate_softness)
+        self.local_search, self.local_search_block = int(search.local_search), int(search.block)
+        self.local_search_window = search.window
+        self.measure_holes, self.max_hole_variance = bool(search.measure_holes), float(search.max_hole_variance)
+        margin = search.hole_background_margin
+        self.hole_background_margin = None if margin is None else float(margin)
+        self.stereo_options = stereo.matcher_options()
         if self.differentiable:
             self.stereo_options["differentiable"] = True
         # The settings learning may change: plain numbers, or (learnable) unconstrained parameters mapped into
         # their ranges (gain: a logistic of gain_logit; the positive ones: exp of a log), so that no optimiser step
         # can leave a range.
         self.learnable = bool(learnable)
-        temperature = float(_TEMPERATURES[self.stereo_options.get("cost", "sad")] if temperature is None
-                            else temperature)
-        fixed = {"gain": float(gain), "gate": float(gate), "process_noise": float(process_noise),
-                 "noise_scale": 1.0, "temperature": temperature}
+        temperature = float(_TEMPERATURES[self.stereo_options.get("cost", "sad")] if stereo.temperature is None
+                            else stereo.temperature)
+        fixed = {"gain": float(correction.gain), "gate": float(correction.gate),
+                 "process_noise": float(prediction.process_noise), "noise_scale": 1.0, "temperature": temperature}
         self._fixed = {} if self.learnable else fixed
         if self.learnable:
-            if not (float(gate) > 0 and float(process_noise) > 0 and float(gain) < 1):
+            if not (fixed["gate"] > 0 and fixed["process_noise"] > 0 and fixed["gain"] < 1):
                 raise ValueRangeError(
                     "learnable=True: gate and process_noise must be > 0 and gain < 1 (their parameters are logs and a "
-                    f"logit), got gate={gate}, process_noise={process_noise}, gain={gain}")
-            self.gain_logit = nn.Parameter(torch.logit(torch.tensor(float(gain))))
+                    f"logit), got gate={fixed['gate']}, process_noise={fixed['process_noise']}, gain={fixed['gain']}")
+            self.gain_logit = nn.Parameter(torch.logit(torch.tensor(fixed["gain"])))
             for name in ("gate", "process_noise", "noise_scale", "temperature"):
                 setattr(self, f"log_{name}", nn.Parameter(torch.tensor(fixed[name]).log()))
         self.confidence_net = confidence_net

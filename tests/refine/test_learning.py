@@ -74,7 +74,7 @@ def test_a_few_training_steps_lower_the_loss_and_change_the_parameters(seq, fusi
         loss = _loss(_run(refiner, seq, grad=True)[0], seq)
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     final = float(_loss(_run(refiner, seq)[0], seq))
     assert final < losses[0]
     changed = [n for n, p in refiner.named_parameters() if not torch.equal(p.detach(), start[n])]

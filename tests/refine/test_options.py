@@ -1,0 +1,79 @@
+"""The refiner's grouped options: validation at construction, the flat keywords' deprecation path."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from egorefine.core import ValueRangeError
+from egorefine.data import render_sequence
+from egorefine.refine import (
+    CorrectionOptions,
+    EgoMotionRefiner,
+    PredictionOptions,
+    ScheduleOptions,
+    SearchOptions,
+    StereoOptions,
+    TrackingOptions,
+    refine_sequence,
+)
+from egorefine.refine.options import GROUPS, LEGACY_KEYWORDS
+
+
+@pytest.mark.parametrize("cls, field, value", [
+    (StereoOptions, "block_size", 8), (StereoOptions, "cost", "ssd"), (StereoOptions, "min_disparity", -1),
+    (TrackingOptions, "max_features", 0), (TrackingOptions, "min_tracks", -1),
+    (PredictionOptions, "splat", "blob"), (PredictionOptions, "process_noise", -0.1),
+    (CorrectionOptions, "gain", 0.0), (CorrectionOptions, "gain", 1.5), (CorrectionOptions, "kalman_gate", 0.0),
+    (CorrectionOptions, "reset_after", 0), (CorrectionOptions, "edge_kernel", 2),
+    (CorrectionOptions, "gate_softness", -1.0), (SearchOptions, "local_search", 1), (SearchOptions, "block", 4),
+    (SearchOptions, "window", "round"), (SearchOptions, "max_hole_variance", 0.0),
+    (ScheduleOptions, "min_coverage", -0.5),
+])
+def test_a_bad_field_fails_where_it_is_written(cls, field, value):
+    with pytest.raises(ValueRangeError, match=field):
+        cls(**{field: value})
+
+
+def test_groups_are_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        TrackingOptions().max_features = 3
+
+
+def test_every_legacy_keyword_names_a_field_of_its_group():
+    for key, (group, field) in LEGACY_KEYWORDS.items():
+        assert field in {f.name for f in dataclasses.fields(GROUPS[group])}, key
+
+
+def test_flat_keywords_warn_and_give_the_grouped_refiner():
+    with pytest.warns(DeprecationWarning, match=r"tracking=TrackingOptions\(max_features=\.\.\., min_tracks=\.\.\.\)"):
+        old = EgoMotionRefiner(max_features=64, min_tracks=16, local_search=2, gain=0.3)
+    new = EgoMotionRefiner(tracking=TrackingOptions(max_features=64, min_tracks=16),
+                           search=SearchOptions(local_search=2), correction=CorrectionOptions(gain=0.3))
+    for group in GROUPS:
+        assert getattr(old, group) == getattr(new, group)
+    assert old.max_features == 64 and old.local_search == 2 and old.gain == 0.3
+
+
+def test_flat_keywords_apply_on_top_of_a_group_and_unknown_ones_fail():
+    with pytest.warns(DeprecationWarning):
+        r = EgoMotionRefiner(tracking=TrackingOptions(max_features=64), min_tracks=8)
+    assert (r.tracking.max_features, r.tracking.min_tracks) == (64, 8)
+    with pytest.raises(TypeError, match="max_feature"):
+        EgoMotionRefiner(max_feature=64)
+    with pytest.raises(ValueRangeError, match="tracking"):
+        EgoMotionRefiner(tracking={"max_features": 64})
+
+
+def test_old_and_new_forms_give_the_same_maps():
+    seq = render_sequence(num_frames=3, height=48, width=64, seed=2)
+    K, b = seq.K[None], torch.tensor([seq.baseline])
+    with pytest.warns(DeprecationWarning):
+        old = refine_sequence(seq.left, seq.right, K, b, verify_every=2, fusion="kalman", max_disparity=16,
+                              max_features=64, min_tracks=16, process_noise=0.02)
+    new = refine_sequence(seq.left, seq.right, K, b, verify_every=2, fusion="kalman", max_disparity=16,
+                          tracking=TrackingOptions(max_features=64, min_tracks=16),
+                          prediction=PredictionOptions(process_noise=0.02))
+    assert torch.equal(old.valid, new.valid) and torch.equal(old.disparity, new.disparity)
