@@ -13,7 +13,8 @@ from .options import (
     TrackingOptions,
 )
 from .predict import PredictDisparity, Prediction, fill_holes_background, predict_disparity
-from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState, SequenceResult, refine_sequence
+from .refiner import EgoMotionRefiner, RefinerOutput, RefinerState
+from .sequence import SequenceResult, refine_sequence
 
 __all__ = [
     "Status",

@@ -48,7 +48,7 @@ _F = np.float32
 # the constants of egorefine.refine.predict, as float32
 _MIN = _F(1e-3)  # _MIN_DEPTH_RATIO
 _BIG = _F(min(1e30, float(np.finfo(np.float32).max) ** 0.5))  # _big(float32)
-_PAD = 2  # margin of the padded source layout (predict._PAD)
+_PAD = 2  # margin of the padded source layout (_splat._PAD)
 
 
 if AVAILABLE:
@@ -485,7 +485,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
 
     Args:
         d, var, valid: ``(B, H, W)`` source disparity, its variance and bool validity (None: all).
-        A, a, G, e: the pixel-homogeneous motion of ``predict._pixel_motion`` (float32).
+        A, a, G, e: the pixel-homogeneous motion of ``_splat._pixel_motion`` (float32).
         surface_tolerance, refine_iterations, fill_holes, process_noise, hole_variance: as ``predict_disparity``.
         threads: worker threads (None: ``torch.get_num_threads()``).
 
@@ -547,7 +547,7 @@ def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.T
     Args:
         disparity, variance, valid, confidence: ``(B, H, W)`` the prediction's maps (not changed).
         key_disparity, key_variance, key_valid: ``(B, H, W)`` keyframe maps.
-        G, e: ``(B, 3, 3)``, ``(B, 3)`` the back-projection of ``predict._pixel_motion``.
+        G, e: ``(B, 3, 3)``, ``(B, 3)`` the back-projection of ``_splat._pixel_motion``.
         iterations, tolerance, surface_tolerance, process_noise: as ``close_cracks``.
         threads: worker threads (None: ``torch.get_num_threads()``).
     """

@@ -35,7 +35,8 @@ import torch
 
 from ..core import check_setting, check_shape, use_compiled
 from . import _predict_numba
-from .predict import Prediction, _pixel_motion
+from ._splat import _pixel_motion
+from .predict import Prediction
 
 __all__ = ["close_cracks"]  # (and the refiner's private finish_prediction)
 

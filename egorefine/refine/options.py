@@ -207,8 +207,8 @@ class SearchOptions:
         r = self.local_search
         if int(r) != r or r < 0 or r == 1:
             raise ValueRangeError(f"local_search: expected 0 (off) or an integer >= 2, got {r}")
-        _odd(self.block, "block")
-        check_choice(self.window, ("fronto", "warped"), "window")
+        _odd(self.block, "block (local_search_block)")
+        check_choice(self.window, ("fronto", "warped"), "window (local_search_window)")
         if not float(self.max_hole_variance) > 0:
             raise ValueRangeError(f"max_hole_variance: expected > 0, got {self.max_hole_variance}")
         if self.hole_background_margin is not None:

@@ -1,4 +1,5 @@
-"""The predict-and-correct loop: :class:`EgoMotionRefiner` and :func:`refine_sequence`.
+"""The predict-and-correct loop: :class:`EgoMotionRefiner` (one frame per call; :func:`refine_sequence` in
+:mod:`egorefine.refine.sequence` runs it over a video).
 
 One frame (PAPER.md, "The loop"; DESIGN.md, "Data flow"):
 
@@ -10,15 +11,15 @@ One frame (PAPER.md, "The loop"; DESIGN.md, "Data flow"):
    gain, or per-pixel Kalman fusion);
 5. top the feature set up when tracks thin out.
 
-The state is explicit: ``out, state = refiner(left, right, K, baseline, state)``; nothing is
-kept on the module between calls, so one refiner serves many sequences, and a state can be
-saved, inspected or detached.
+The state is explicit (:mod:`egorefine.refine.state`): ``out, state = refiner(left, right, K, baseline,
+state)``; nothing is kept on the module between calls, so one refiner serves many sequences, and a state can be
+saved, inspected or detached. The smaller per-frame steps (confidence, hole measurements, recovery rules, the
+constant-velocity guess) are in :mod:`egorefine.refine._steps`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -26,7 +27,6 @@ from torch import nn
 
 from ..core import (
     DeviceError,
-    DTypeError,
     ShapeError,
     StateError,
     ValueRangeError,
@@ -37,16 +37,13 @@ from ..core import (
     check_positive,
     check_setting,
     check_shape,
-    progress,
     to_grey,
-    use_compiled,
 )
 from ..features import build_pyramid, replenish, track
-from ..geometry import disparity_to_depth, project, transform_points, unproject
 from ..motion import solve_ego_motion
 from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_regions
 from ..stereo.matching import _TEMPERATURES
-from . import _fuse_numba, _predict_numba
+from ._steps import _confidence, _expected_positions, _overrule, _take_hole_measurements
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
 from .health import (
@@ -67,9 +64,10 @@ from .options import (
     TrackingOptions,
     resolve_groups,
 )
-from .predict import Prediction, predict_disparity
+from .predict import predict_disparity
+from .state import RefinerOutput, RefinerState
 
-__all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner", "SequenceResult", "refine_sequence"]
+__all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner"]
 
 # pyramid levels of the feature tracker (its default)
 _TRACK_LEVELS = 3
@@ -87,222 +85,6 @@ _GATE_SOFTNESS = 0.1
 # a confidence network's variance scale is clamped to this range (a documented clamp: never 0, never Inf)
 _SCALE_RANGE = (1e-3, 1e3)
 
-
-class RefinerState(NamedTuple):
-    """What one frame hands to the next. All tensors are batched; ``frame`` counts calls.
-
-    Attributes:
-        image: ``(B, 1, H, W)`` previous left image, grey.
-        keypoints: ``(B, N, 2)`` feature positions in ``image``.
-        weights: ``(B, N)`` live-track weights (0 = empty slot).
-        disparity: ``(B, 1, H, W)`` previous refined disparity.
-        variance: ``(B, 1, H, W)`` its per-pixel variance, px^2.
-        valid: ``(B, 1, H, W)`` where ``disparity`` holds a real (not hole-filled) value.
-        outlier_count: ``(B, 1, H, W)`` consecutive gated-out verifications per pixel (Kalman reset).
-        motion: ``(B, 4, 4)`` last estimated ``camera_t_T_camera_{t-1}`` (centres the next search).
-        key_disparity, key_variance, key_valid: ``(B, 1, H, W)`` the map of the last verification frame
-            (the keyframe); every prediction starts from it, not from the previous prediction.
-        key_motion: ``(B, 4, 4)`` ``camera_t_T_camera_key``, the motions composed since the keyframe.
-        frame: index of the frame this state was produced on.
-        since_stereo: frames since stereo last ran (0 = it ran on ``frame``).
-        pyramid: the tracker's image pyramid of ``image`` (levels of ``(B, 1, H_l, W_l)``), built once per frame
-            and reused when tracking into the next one; None: built from ``image`` when needed.
-    """
-
-    image: torch.Tensor
-    keypoints: torch.Tensor
-    weights: torch.Tensor
-    disparity: torch.Tensor
-    variance: torch.Tensor
-    valid: torch.Tensor
-    outlier_count: torch.Tensor
-    motion: torch.Tensor
-    key_disparity: torch.Tensor
-    key_variance: torch.Tensor
-    key_valid: torch.Tensor
-    key_motion: torch.Tensor
-    frame: int
-    since_stereo: int
-    pyramid: tuple[torch.Tensor, ...] | None = None
-
-    def detach(self) -> RefinerState:
-        """The same state with every tensor detached from the autograd graph: truncated backpropagation
-        through time. The next frame's outputs then depend on this state's values but gradients stop here.
-
-        Example:
-            >>> import torch
-            >>> x = torch.ones(1, 1, 2, 2, requires_grad=True)
-            >>> eye = torch.eye(4)[None]
-            >>> s = RefinerState(x, x[:, 0, :1], x[:, 0, 0], x * 2, x, x > 0, x, eye, x, x, x > 0, eye, 0, 0, (x,))
-            >>> d = s.detach()
-            >>> d.disparity.requires_grad, d.pyramid[0].requires_grad, s.disparity.requires_grad
-            (False, False, True)
-        """
-        def cut(value):
-            if isinstance(value, torch.Tensor):
-                return value.detach()
-            if isinstance(value, tuple):
-                return tuple(cut(v) for v in value)
-            return value
-
-        return RefinerState(*(cut(v) for v in self))
-
-
-class RefinerOutput(NamedTuple):
-    """The refiner's answer for one frame.
-
-    Attributes:
-        disparity: ``(B, 1, H, W)`` refined disparity, px; hole-filled pixels hold a value too.
-        valid: ``(B, 1, H, W)`` bool, pixels with a real (measured or predicted) disparity.
-        motion: ``(B, 4, 4)`` ``camera_t_T_camera_{t-1}``; identity on the first frame and where
-            the motion could not be estimated (see ``motion_ok``).
-        stereo_ran: whether stereo matching ran on this frame.
-        variance: ``(B, 1, H, W)`` per-pixel variance, px^2.
-        confidence: ``(B, 1, H, W)`` in [0, 1]; low on hole-filled pixels.
-        motion_ok: ``(B,)`` bool, the ego-motion solve succeeded (True on the first frame).
-        num_tracks: ``(B,)`` features that were tracked into this frame.
-        status: ``(B,)`` int64 bits of :class:`~egorefine.refine.health.Status`: what happened to each item on
-            this frame (stereo forced, motion failed, scene change, measurement rejected, prediction reset, exposure
-            jump); 0 on an ordinary frame.
-    """
-
-    disparity: torch.Tensor
-    valid: torch.Tensor
-    motion: torch.Tensor
-    stereo_ran: bool
-    variance: torch.Tensor
-    confidence: torch.Tensor
-    motion_ok: torch.Tensor
-    num_tracks: torch.Tensor
-    status: torch.Tensor
-
-
-
-def _confidence(valid: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
-    """``1 / (1 + variance)`` on valid pixels, 0 elsewhere: the same meaning on every frame (as in predict).
-    Float32 CPU maps without gradient take a compiled pass (no full-map torch op to wake torch's OpenMP threads)."""
-    if valid.dtype == torch.bool and use_compiled(valid, variance):  # (the kernel reads a bool mask)
-        return _fuse_numba.confidence(valid, variance)
-    return valid.to(variance.dtype) / (1.0 + variance)
-
-
-def _take_hole_measurements(
-    disparity: torch.Tensor,
-    variance: torch.Tensor,
-    valid: torch.Tensor,
-    outliers: torch.Tensor,
-    meas: StereoOutput,
-    pred: Prediction,
-    max_variance: float,
-    background_margin: float | None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The loop's map with stereo measurements of its holes (``~valid``) taken: new ``(disparity, variance, valid,
-    outliers, confidence)``.
-
-    A valid measurement of a hole pixel is taken where its variance is at most ``max_variance``, or, with a
-    ``background_margin``, where the pixel is one of the splat's holes (``pred.hole``, whose ``pred.disparity`` is
-    the background fill of :func:`~egorefine.refine.fill_holes_background`) and the measurement lies at most
-    ``background_margin`` px above that fill. A hole the motion uncovers shows the background, and the matcher's
-    usual error there is the foreground's disparity spilling over the edge: a value on the background's side
-    of the fill is plausible even where the cost curve is flat. A taken pixel gets the measurement's value and
-    variance and a zero outlier count. Float32 CPU maps without gradient take one compiled pass
-    (:func:`egorefine.refine._fuse_numba.take_measurements`), others the same rule in torch.
-    """
-    if use_compiled(disparity, variance, valid, outliers, meas.disparity, meas.variance, meas.valid, pred.disparity,
-                    pred.hole):
-        return _fuse_numba.take_measurements(disparity, variance, valid, outliers, meas.disparity, meas.variance,
-                                             meas.valid, pred.disparity, pred.hole, max_variance, background_margin)
-    take = meas.variance <= max_variance
-    if background_margin is not None:
-        take = take | (pred.hole & (meas.disparity <= pred.disparity + background_margin))
-    take = ~valid & meas.valid & take
-    variance = torch.where(take, meas.variance, variance)
-    valid = valid | take
-    return (torch.where(take, meas.disparity, disparity), variance, valid,
-            torch.where(take, torch.zeros_like(outliers), outliers), _confidence(valid, variance))
-
-
-def _overrule(
-    maps: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
-    pred: Prediction,
-    meas: StereoOutput,
-    keep: torch.Tensor,
-    restart: torch.Tensor,
-    regions: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The corrected ``(disparity, variance, valid, outliers)`` with the recovery rules of a verification applied:
-    items in ``restart`` ``(B,)`` take the measurement whole (their motion failed), items in ``keep`` ``(B,)`` the
-    prediction whole (their stereo failed), and elsewhere the pixels of ``regions`` ``(B, 1, H, W)`` take the
-    measurement; taken pixels get a zero outlier count. CPU maps without gradient are written with numpy (no torch
-    pass over the full maps), others with the same rule in torch."""
-    disparity, variance, valid, outliers = maps
-    tensors = (disparity, variance, outliers, pred.disparity, pred.variance, meas.disparity, meas.variance)
-    if use_compiled(*tensors, valid, pred.valid, meas.valid, regions):
-        item_keep, item_restart = keep.numpy()[:, None, None, None], restart.numpy()[:, None, None, None]
-        take = (regions.numpy() & ~item_keep) | item_restart
-
-        def pick_np(corrected, predicted, measured):
-            chosen = np.where(take, measured.numpy(), corrected.numpy())
-            return torch.from_numpy(np.where(item_keep & ~item_restart, predicted.numpy(), chosen))
-
-        return (pick_np(disparity, pred.disparity, meas.disparity), pick_np(variance, pred.variance, meas.variance),
-                pick_np(valid, pred.valid, meas.valid),
-                torch.from_numpy(np.where(take | item_keep, 0, outliers.numpy()).astype(outliers.numpy().dtype)))
-    item_keep, item_restart = keep[:, None, None, None], restart[:, None, None, None]
-    take = (regions & ~item_keep) | item_restart
-
-    def pick(corrected, predicted, measured):
-        return torch.where(item_restart, measured, torch.where(item_keep, predicted, torch.where(take, measured,
-                                                                                                 corrected)))
-
-    return (pick(disparity, pred.disparity, meas.disparity), pick(variance, pred.variance, meas.variance),
-            pick(valid, pred.valid, meas.valid),
-            torch.where(take | item_keep, torch.zeros_like(outliers), outliers))
-
-
-def _sample(disparity: torch.Tensor, valid: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Bilinear samples ``(B, N)`` of ``disparity`` ``(B, 1, H, W)`` at pixel positions ``(B, N, 2)`` (clamped to the
-    image), and whether all four pixels they blend are ``valid``: a gather of the four corners, not a pass over the
-    maps (a full-map torch op wakes torch's OpenMP threads, which then spin beside the compiled tracker)."""
-    B, _, H, W = disparity.shape
-    x, y = points.unbind(-1)
-    x0 = x.floor().clamp(0, max(W - 2, 0))
-    y0 = y.floor().clamp(0, max(H - 2, 0))
-    fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
-    first = (y0 * W + x0).long()
-    dx, dy = min(1, W - 1), min(1, H - 1) * W
-    idx = torch.stack([first, first + dx, first + dy, first + dy + dx], dim=-1).view(B, -1)
-    d = disparity.reshape(B, H * W).gather(1, idx).view(B, -1, 4)
-    ok = valid.reshape(B, H * W).gather(1, idx).view(B, -1, 4).all(-1)
-    top = d[..., 0] + fx * (d[..., 1] - d[..., 0])
-    bottom = d[..., 2] + fx * (d[..., 3] - d[..., 2])
-    return top + fy * (bottom - top), ok
-
-
-def _expected_positions(
-    keypoints: torch.Tensor,
-    disparity: torch.Tensor,
-    valid: torch.Tensor,
-    motion: torch.Tensor,
-    K: torch.Tensor,
-    baseline: torch.Tensor,
-) -> torch.Tensor:
-    """Where ``keypoints`` land if the rig repeats ``motion`` (constant velocity): centres the track search.
-    Points whose four neighbouring pixels are not all valid keep their position."""
-    H, W = disparity.shape[-2:]
-    if valid.dtype == torch.bool and use_compiled(keypoints, disparity, valid, motion, K, baseline):  # (a bool mask)
-        # compiled: some forty torch ops on a few hundred points cost more in launches than in arithmetic
-        return _predict_numba.expected_positions(keypoints.contiguous(), disparity[:, 0].contiguous(),
-                                                 valid[:, 0].contiguous(), motion.contiguous(), K.contiguous(),
-                                                 baseline.contiguous())
-    d, ok = _sample(disparity, valid, keypoints)
-    ok = ok & (d > 0)
-    depth = disparity_to_depth(d, K[:, 0, 0], baseline)
-    points = transform_points(motion, unproject(keypoints, depth, K))
-    moved = project(points, K)
-    inside = (moved[..., 0] >= 0) & (moved[..., 0] <= W - 1) & (moved[..., 1] >= 0) & (moved[..., 1] <= H - 1)
-    ok = ok & inside & (points[..., 2] > 0) & torch.isfinite(moved).all(-1)
-    return torch.where(ok[..., None], moved, keypoints)
 
 
 class EgoMotionRefiner(nn.Module):
@@ -771,87 +553,3 @@ class EgoMotionRefiner(nn.Module):
             meas.disparity, meas.variance, meas.valid, eye.clone(), 0, 0, tuple(build_pyramid(grey, _TRACK_LEVELS)),
         )
         return out, state
-
-
-class SequenceResult(NamedTuple):
-    """Per-frame outputs of :func:`refine_sequence`, stacked along a leading time axis.
-
-    Attributes:
-        disparity: ``(T, B, 1, H, W)``.
-        valid: ``(T, B, 1, H, W)`` bool.
-        motion: ``(T, B, 4, 4)`` ``camera_t_T_camera_{t-1}`` (identity at t = 0).
-        stereo_ran: ``(T,)`` bool.
-        variance: ``(T, B, 1, H, W)``.
-        confidence: ``(T, B, 1, H, W)``.
-        motion_ok: ``(T, B)`` bool.
-        num_tracks: ``(T, B)`` features tracked into each frame.
-        status: ``(T, B)`` int64 :class:`~egorefine.refine.health.Status` bits of each frame.
-    """
-
-    disparity: torch.Tensor
-    valid: torch.Tensor
-    motion: torch.Tensor
-    stereo_ran: torch.Tensor
-    variance: torch.Tensor
-    confidence: torch.Tensor
-    motion_ok: torch.Tensor
-    num_tracks: torch.Tensor
-    status: torch.Tensor
-
-
-def refine_sequence(
-    lefts: torch.Tensor,
-    rights: torch.Tensor,
-    K: torch.Tensor,
-    baseline: torch.Tensor,
-    verify_every: int = 5,
-    show_progress: bool = False,
-    refiner: EgoMotionRefiner | None = None,
-    **options,
-) -> SequenceResult:
-    """Run :class:`EgoMotionRefiner` over a whole stereo video.
-
-    Args:
-        lefts: ``(T, B, C, H, W)`` left images (``(T, C, H, W)`` is read as B = 1).
-        rights: right images of the same shape (only verification frames are read).
-        K: ``(B, 3, 3)`` (or ``(3, 3)``) intrinsics; baseline ``(B,)`` (or a float) metres.
-        verify_every: stereo every i-th frame.
-        show_progress: show a progress bar on stderr.
-        refiner: a configured refiner to use instead of building one from ``options``.
-        **options: keyword arguments of :class:`EgoMotionRefiner`.
-
-    Returns:
-        :class:`SequenceResult`.
-    """
-    for name, t in (("lefts", lefts), ("rights", rights)):
-        if not isinstance(t, torch.Tensor):
-            raise DTypeError(f"{name}: expected a torch.Tensor, got {type(t).__name__} (use torch.as_tensor)")
-    if lefts.dim() == 4:
-        lefts, rights = lefts[:, None], rights[:, None]
-    check_shape(lefts, ["T", "B", "1|3", "H", "W"], "lefts")
-    if lefts.shape[0] == 0:
-        raise ShapeError(f"lefts: expected at least one frame, got shape {tuple(lefts.shape)}")
-    if rights.shape != lefts.shape:
-        raise ShapeError(f"rights: expected the shape of lefts {tuple(lefts.shape)}, got {tuple(rights.shape)}")
-    T, B = lefts.shape[:2]
-    if K.dim() == 2:
-        K = K.expand(B, 3, 3)
-    if not isinstance(baseline, torch.Tensor) or baseline.dim() == 0:
-        baseline = torch.full((B,), float(baseline), device=lefts.device, dtype=lefts.dtype)
-    refiner = EgoMotionRefiner(verify_every=verify_every, **options) if refiner is None else refiner
-    outs = []
-    state = None
-    for t in progress(range(T), desc="refine_sequence", enabled=show_progress):
-        out, state = refiner(lefts[t], rights[t], K, baseline, state)
-        outs.append(out)
-    return SequenceResult(
-        torch.stack([o.disparity for o in outs]),
-        torch.stack([o.valid for o in outs]),
-        torch.stack([o.motion for o in outs]),
-        torch.tensor([o.stereo_ran for o in outs], device=lefts.device),
-        torch.stack([o.variance for o in outs]),
-        torch.stack([o.confidence for o in outs]),
-        torch.stack([o.motion_ok for o in outs]),
-        torch.stack([o.num_tracks for o in outs]),
-        torch.stack([o.status for o in outs]),
-    )

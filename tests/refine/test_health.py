@@ -150,8 +150,8 @@ def test_disagreeing_regions_numpy_and_torch_agree(shape):
 def test_overrule_numpy_and_torch_agree(monkeypatch):
     """The recovery rules written with numpy (CPU, no gradient) and with torch give the same maps."""
     from egorefine.core import dispatch
+    from egorefine.refine._steps import _overrule
     from egorefine.refine.predict import Prediction
-    from egorefine.refine.refiner import _overrule
     from egorefine.stereo import StereoOutput
 
     g = torch.Generator().manual_seed(5)

@@ -346,8 +346,8 @@ def test_measure_holes_adds_accurate_values_where_the_view_changed():
 def test_hole_rule_takes_precise_or_background_side_values(compiled, monkeypatch):
     """Hand-made hole pixels: the variance rule, the background rule (splat holes only) and invalid matches; the
     compiled pass and the torch rule give the same maps."""
+    from egorefine.refine._steps import _take_hole_measurements
     from egorefine.refine.predict import Prediction
-    from egorefine.refine.refiner import _take_hole_measurements
     from egorefine.stereo import StereoOutput
 
     if not compiled:
@@ -438,7 +438,7 @@ def test_expected_positions_move_features_with_the_motion(small_seq, compiled, m
     """The constant-velocity centres of the track search, against the same geometry in float64: bilinear
     disparity, Z = f B / d, the rigid motion, the projection; points on invalid or non-positive disparity or
     landing outside the image keep their position."""
-    from egorefine.refine.refiner import _expected_positions
+    from egorefine.refine._steps import _expected_positions
 
     if not compiled:
         monkeypatch.setattr(_jit, "AVAILABLE", False)
