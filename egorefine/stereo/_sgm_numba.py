@@ -26,8 +26,8 @@ Compiled with ``cache=True``: the first call on a machine compiles for a few sec
 
 The two volumes (``H W D`` int16 costs and float32 path sums, about 6 bytes per candidate) are kept
 per calling thread and reused by the next call of the same size, as OpenCV's SGBM keeps its buffer:
-faulting in ~100 MB of fresh pages costs 6-13 ms at 640x480 with 64 disparities (measured against
-~48 ms for the whole call). :func:`release_workspace` frees them.
+faulting in fresh pages for them on every call costs a sizeable share of the call (docs/decisions.md).
+:func:`release_workspace` frees them.
 
 ``AVAILABLE`` is False when numba cannot be imported; callers then use the torch path.
 """
@@ -166,7 +166,7 @@ if AVAILABLE:
         without fast-math (a float one it would not).
         """
         mp2 = m + p2
-        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: 6x slower)
+        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: much slower)
         big = np.float32(1.0e6)
         zero = np.float32(0.0)
         c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)
@@ -196,7 +196,7 @@ if AVAILABLE:
     def _step_add(prev, pp, c, cp, jlim, m, p1, p2, out, op, acc, ap):
         """_step, also adding the new path costs to row ``ap`` of ``acc`` (one pass instead of two)."""
         mp2 = m + p2
-        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: 6x slower)
+        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: much slower)
         big = np.float32(1.0e6)
         zero = np.float32(0.0)
         c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)

@@ -52,8 +52,7 @@ COST_FLOORS = {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}
 # the exact int16 path of the default SAD matcher (False: always the float path, for comparisons)
 _INTEGER_PATH = True
 _STRIP_ELEMENTS = 1 << 19  # ~2 MB of float32 per strip volume: stays in cache
-# on a GPU launches, not caches, set the time: strips of up to 256 MB (H100, 640x480 / 64: ZNCC 4.0 ms against
-# 47.8 with the CPU size, census 5.5 against 51.3)
+# on a GPU launches, not caches, set the time: strips of up to 256 MB (docs/decisions.md)
 _GPU_STRIP_ELEMENTS = 1 << 26
 # INVALID_COST's float32 bit pattern read as int32 (the encoded value of an out-of-view candidate)
 _INVALID_CODE = struct.unpack("<i", struct.pack("<f", INVALID_COST))[0]
