@@ -53,10 +53,9 @@ from refine import (  # noqa: E402
     run_refiner,
 )
 
+from egorefine.data import render_sequence  # noqa: E402
 from egorefine.metrics import evaluate_disparity  # noqa: E402
 from egorefine.refine import EgoMotionRefiner  # noqa: E402
-
-from egorefine.data import render_sequence  # noqa: E402
 from egorefine.stereo import match_stereo  # noqa: E402
 
 CACHE = RESULTS / "cache" / "tune_frames"
@@ -161,10 +160,11 @@ def loop(frames: int, specs: list[str]) -> None:
         seq = render(spec, frames, None, seed, None)
         max_disp = MAX_DISPARITY[spec.preset]
         gt, mask = seq.disparity, (seq.disparity > 0) & ~seq.occluded
-        methods = {SGBM: lambda s: run_per_frame(opencv_matchers(max_disp)["OpenCV SGBM 3-way"], s)}
+        sgbm = opencv_matchers(max_disp)["OpenCV SGBM 3-way"]
+        methods = {SGBM: lambda s, fn=sgbm: run_per_frame(fn, s)}
         for name, kw in LOOP_MATCHERS.items():
-            methods[name] = lambda s, kw=kw: run_refiner(
-                EgoMotionRefiner(max_disparity=max_disp, verify_every=VERIFY_EVERY, fusion="kalman", **kw), s)
+            methods[name] = lambda s, kw=kw, md=max_disp: run_refiner(
+                EgoMotionRefiner(max_disparity=md, verify_every=VERIFY_EVERY, fusion="kalman", **kw), s)
         for name, run in methods.items():
             d, v, ms, _ = run(seq)
             m = evaluate_disparity(d, gt, v, mask)

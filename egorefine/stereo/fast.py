@@ -293,7 +293,8 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         return disparity, valid, variance
     # CPU with several threads: bands in parallel, each worker single-threaded and taking the next band
     # when done. Intra-op threading of the many mid-sized ops costs more in thread wake-ups than it gains
-    # (slower, not faster, with 2 threads: docs/decisions.md); the ops release the GIL, so Python threads run bands concurrently.
+    # (slower, not faster, with 2 threads: docs/decisions.md); the ops release the GIL, so Python threads run bands
+    # concurrently.
     def quantised(image: torch.Tensor, p: tuple[int, int, int, int]) -> torch.Tensor:
         torch.set_num_threads(1)
         return _quantise(image, cap, scale, p)[1]
