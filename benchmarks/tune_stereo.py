@@ -13,8 +13,8 @@ frames, and the time per frame (median over frames; 2 threads for torch and Open
 and StereoSGBM 3-way (block 5) run as ``benchmarks/real.py`` runs them (as their users do: P1 = 8 cn bs^2,
 P2 = 32 cn bs^2, uniquenessRatio 10, speckleWindowSize 100, speckleRange 2, disp12MaxDiff 1).
 
-    python benchmarks/tune_stereo.py                           # every named configuration
-    python benchmarks/tune_stereo.py --only "sgm,sgm adaptive"  # a few of them (comma-separated names)
+    python benchmarks/tune_stereo.py --only "default (before),sgm (before),default,sgm"   # before / after
+    python benchmarks/tune_stereo.py --seeds-per-spec 1         # every named configuration, seeds 0-11
     python benchmarks/tune_stereo.py --extra '{"try": {"cost": "census", "aggregation": "sgm"}}'
     python benchmarks/tune_stereo.py --loop --frames 15   # the loop (Kalman @5) with each verification matcher
 
@@ -66,12 +66,30 @@ SGM = {"cost": "census", "aggregation": "sgm", "block_size": 5}
 # issue 17 (2026-12-01), spelt out so that the table keeps them whatever the defaults become.
 BEFORE_DEFAULT = {"uniqueness_ratio": 0.15, "texture_threshold": 0.004, "lr_threshold": 1, "speckle_size": 100,
                   "speckle_range": 1.0}
-BEFORE_SGM = {**SGM, **BEFORE_DEFAULT}
+BEFORE_SGM = {**SGM, **BEFORE_DEFAULT, "census_window": 5, "sgm_p1": 0.5, "sgm_p2": 3.0}
+CW7 = {**SGM, "census_window": 7}
 CONFIGS: dict[str, dict] = {
     "default (before)": BEFORE_DEFAULT,
     "sgm (before)": BEFORE_SGM,
     "default": {},
     "sgm": SGM,
+    # the SGM sweep of 2026-12-01 (docs/decisions.md), the checks and speckle filter of then unless named
+    "sgm P 4/24": {**BEFORE_SGM, "sgm_p1": 4, "sgm_p2": 24},
+    "sgm P 8/48": {**BEFORE_SGM, "sgm_p1": 8, "sgm_p2": 48},
+    "sgm P 8/48 u 0.05": {**BEFORE_SGM, "sgm_p1": 8, "sgm_p2": 48, "uniqueness_ratio": 0.05},
+    "sgm P 8/48 8 paths": {**BEFORE_SGM, "sgm_p1": 8, "sgm_p2": 48, "sgm_paths": 8},
+    "sgm P 24/96": {**BEFORE_SGM, "sgm_p1": 24, "sgm_p2": 96},
+    "sgm census 7 P 24/96": {**BEFORE_SGM, **CW7, "sgm_p1": 24, "sgm_p2": 96},
+    "sgm census 7 P 32/128": {**BEFORE_SGM, **CW7, "sgm_p1": 32, "sgm_p2": 128},
+    "sgm census 7 P 48/192": {**BEFORE_SGM, **CW7, "sgm_p1": 48, "sgm_p2": 192},
+    "sgm census 7 P 32/128 u 0.1": {**BEFORE_SGM, **CW7, "sgm_p1": 32, "sgm_p2": 128, "uniqueness_ratio": 0.1},
+    "sgm, raw-cost check 0.45": {**SGM, "census_max_distance": 0.45},
+    # the default matcher's sweep
+    "default speckle 300": {"speckle_size": 300},
+    "default speckle 200 u 0.1": {"speckle_size": 200, "uniqueness_ratio": 0.1},
+    "default u 0.25": {"uniqueness_ratio": 0.25},
+    "default block 7": {"block_size": 7},
+    "default speckle range 0.25": {"speckle_range": 0.25},
 }
 
 
