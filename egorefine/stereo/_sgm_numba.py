@@ -26,8 +26,8 @@ Compiled with ``cache=True``: the first call on a machine compiles for a few sec
 
 The two volumes (``H W D`` int16 costs and float32 path sums, about 6 bytes per candidate) are kept
 per calling thread and reused by the next call of the same size, as OpenCV's SGBM keeps its buffer:
-faulting in ~100 MB of fresh pages costs 6-13 ms at 640x480 with 64 disparities (measured against
-~48 ms for the whole call). :func:`release_workspace` frees them.
+faulting in fresh pages for them on every call costs a sizeable share of the call (docs/decisions.md).
+:func:`release_workspace` frees them.
 
 ``AVAILABLE`` is False when numba cannot be imported; callers then use the torch path.
 """
@@ -166,7 +166,7 @@ if AVAILABLE:
         without fast-math (a float one it would not).
         """
         mp2 = m + p2
-        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: 6x slower)
+        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: much slower)
         big = np.float32(1.0e6)
         zero = np.float32(0.0)
         c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)
@@ -196,7 +196,7 @@ if AVAILABLE:
     def _step_add(prev, pp, c, cp, jlim, m, p1, p2, out, op, acc, ap):
         """_step, also adding the new path costs to row ``ap`` of ``acc`` (one pass instead of two)."""
         mp2 = m + p2
-        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: 6x slower)
+        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: much slower)
         big = np.float32(1.0e6)
         zero = np.float32(0.0)
         c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)
@@ -340,12 +340,13 @@ if AVAILABLE:
 
     @_jit
     def _vertical_select(cost, p1, p2, x0, x1, diagonals, paths, horiz, store, max_d, bits, subpixel, parabola,
-                         uniqueness, floor, eps, min_disparity_positive, lr_check, jbest, disparity, ok, variance,
-                         rmin):
+                         uniqueness, floor, eps, min_disparity_positive, lr_check, max_raw, jbest, disparity, ok,
+                         variance, rmin):
         """Vertical (and, with ``diagonals``, diagonal) path costs of columns ``[x0, x1)`` added to the horizontal
         ones ``horiz`` in sgm_aggregate's order (top-down paths into ``horiz``), then the selection of each pixel.
 
         ``store``: write the aggregated costs into ``horiz`` (else it keeps a partial sum).
+        ``max_raw``: a winner whose own (un-aggregated) window cost exceeds it is not ok (negative: no such check).
         Per pixel: ``jbest``, ``disparity``, ``ok`` (checks but the left-right one), ``variance`` ``(H, W)``;
         ``rmin`` ``(H, max_d + W)``: this band's part of the right view's encoded minimum at column
         ``max_d + xr`` (min over bands gives it; the first ``max_d`` columns are spare).
@@ -407,6 +408,8 @@ if AVAILABLE:
                                     rrow[j] = min(rrow[j], code)
                             jb, dsp, good, var = _select_pixel(lo, codes, codef, num, max_d, bits, subpixel, parabola,
                                                                uniqueness, floor, eps, min_disparity_positive)
+                            if good and max_raw >= 0:  # (an ok winner is in view: no INVALID_COST in its cost)
+                                good = np.float32(c2[p, jb]) <= max_raw
                             jbest[y, x] = jb
                             disparity[y, x] = dsp
                             ok[y, x] = good
@@ -435,6 +438,12 @@ if AVAILABLE:
                     d_left = max_d - 1 - jbest[y, x]
                     xr = min(max(x - d_left, 0), w - 1)
                     ok[y, x] = abs(max_d - 1 - jright[xr] - d_left) <= lr_threshold
+
+
+def _max_raw(opts: dict) -> np.float32:
+    """The raw-cost check's bound in window-sum units as matching._select computes it (-1: off)."""
+    limit = opts.get("max_raw_cost")
+    return np.float32(-1.0) if limit is None else np.float32(limit)
 
 
 _workspace = threading.local()
@@ -495,7 +504,7 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     select = (max_disparity, max(1, (num - 1).bit_length()), opts["subpixel"], opts["subpixel_fit"] == "parabola",
               float(opts["uniqueness_ratio"]), np.float32(opts["cost_floor"] * opts["scale"]),
               np.float32(torch.finfo(torch.float32).eps * 16 * opts["scale"]), opts["min_disparity"] > 0,
-              bool(opts["lr_check"]))
+              bool(opts["lr_check"]), _max_raw(opts))
     row_bands = _bands(h, threads)
     # vertical paths are independent per column; diagonal ones cross columns: one band
     col_bands = _bands(w, threads) if paths == 4 else [(0, w)]

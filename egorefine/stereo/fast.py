@@ -42,20 +42,19 @@ _INVALID = 32767
 # where the matcher gives no measurement, and the floor of an integer-rounded match
 INVALID_VARIANCE = 1.0e4
 _QUANTISATION_VARIANCE = 1.0 / 12.0
-# a band's cost plane (B * rows * padded width): ~65 k int16 elements, large enough that an op's fixed
-# cost (~3 us) is small beside its work, small enough that a plane, its raw costs and the band's running
-# minima stay in the 2 MB L2 cache (measured best of 2**15..2**17 at 640x480 / 64); a band's stored volume
-# (planes * plane) at most ~4 M elements, 8 MB per worker (2**23: ~3 % faster at 1242x375 / 128, twice
-# the memory; 2**21: ~20 % slower there)
+# a band's cost plane (B * rows * padded width): 2**16 int16 elements, large enough that an op's fixed
+# cost is small beside its work, small enough that a plane, its raw costs and the band's running minima stay
+# in a 2 MB L2 cache; a band's stored volume (planes * plane) at most 2**22 elements, 8 MB per worker (the
+# sizes were timed against their neighbours: docs/decisions.md, "Sizes of the matchers' work buffers")
 _BAND_ELEMENTS = 1 << 16
 _VOLUME_ELEMENTS = 1 << 22
 # raw costs built at once (int16 elements, B * planes * (rows + 2r) * padded width): 3-4 planes of a band at
-# 640x480. Fewer, larger ops cost ~4 % more CPU on one thread but were ~20 % faster on two (46 vs 59 ms at
-# 640x480 / 64 in one run with two free cores): op dispatch holds the GIL, so it does not overlap
+# 640x480. Fewer, larger ops cost a little more CPU on one thread but are faster on two: op dispatch holds the
+# GIL, so it does not overlap (docs/decisions.md)
 _STEP_ELEMENTS = 1 << 18
 # on a GPU op launches set the time, not caches: the whole image as one band (up to 4 M elements per plane),
-# its whole volume (up to 128 M) and all raw cost planes at once (up to 32 M). On an H100, 640x480 / 64:
-# 6.8 ms against 31.7 ms with the CPU sizes; 1242x375 / 128: 9.2 against 126 ms (same outputs)
+# its whole volume (up to 128 M) and all raw cost planes at once (up to 32 M); several times faster there than
+# the CPU sizes, with the same outputs (docs/decisions.md)
 _GPU_ELEMENTS = (1 << 22, 1 << 27, 1 << 25)
 _MIN_ROWS = 8  # at least this many output rows per band (the 2r halo rows of raw costs are computed twice)
 
@@ -294,7 +293,8 @@ def match_sad_int(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: in
         return disparity, valid, variance
     # CPU with several threads: bands in parallel, each worker single-threaded and taking the next band
     # when done. Intra-op threading of the many mid-sized ops costs more in thread wake-ups than it gains
-    # (measured 2x slower with 2 threads); the ops release the GIL, so Python threads run bands concurrently.
+    # (slower, not faster, with 2 threads: docs/decisions.md); the ops release the GIL, so Python threads run bands
+    # concurrently.
     def quantised(image: torch.Tensor, p: tuple[int, int, int, int]) -> torch.Tensor:
         torch.set_num_threads(1)
         return _quantise(image, cap, scale, p)[1]
@@ -318,7 +318,7 @@ def _tail(j: torch.Tensor, costs: torch.Tensor, best: torch.Tensor, valid: torch
     """Sub-pixel fit and variance of one band (the formulas of ``matching._select``), written into ``out``.
 
     ``costs`` ``(B, 2, n, W)``: the integer costs at the winner's d + 1 and d - 1; ``best`` at d. 0/1 float factors
-    replace torch.where (where and masked_fill on bool masks are ~20x slower than arithmetic on CPU);
+    replace torch.where (where and masked_fill on bool masks are far slower than arithmetic on CPU);
     band-sized temporaries stay in cache.
     """
     disparity, variance = out

@@ -43,17 +43,20 @@ __all__ = ["StereoOutput", "block_matching", "match_stereo", "BlockMatching", "I
 
 AGGREGATIONS = ("box", "sgm")
 SUBPIXEL_FITS = ("parabola", "equiangular")
-# SGM penalties per cost, in that cost's units (window-mean SAD of the prefiltered image,
-# 1 - ZNCC, mean Hamming distance).
-_SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (0.5, 3.0)}
+# SGM penalties per cost, in that cost's units (window-mean SAD of the prefiltered image, 1 - ZNCC); census's per
+# bit of the census string (times census_window**2 - 1 gives mean Hamming distance units): strong smoothing, which
+# noisy, weakly textured surfaces need before a winner passes the checks (docs/decisions.md, issue 17)
+_SGM_PENALTIES = {"sad": (0.006, 0.05), "zncc": (0.05, 0.4), "census": (2.0 / 3.0, 8.0 / 3.0)}
+# the uniqueness ratio per aggregation when none is given: SGM's aggregated costs carry the path penalties, so
+# their relative margins are smaller than a box sum's
+UNIQUENESS_RATIOS = {"box": 0.15, "sgm": 0.1}
 _TEMPERATURES = {"sad": 0.008, "zncc": 0.05, "census": 0.2}
 # cost floor of the variance model per cost (keeps a perfect match's variance finite), in that cost's units
 COST_FLOORS = {"sad": 1e-3, "zncc": 1e-2, "census": 0.1}
 # the exact int16 path of the default SAD matcher (False: always the float path, for comparisons)
 _INTEGER_PATH = True
 _STRIP_ELEMENTS = 1 << 19  # ~2 MB of float32 per strip volume: stays in cache
-# on a GPU launches, not caches, set the time: strips of up to 256 MB (H100, 640x480 / 64: ZNCC 4.0 ms against
-# 47.8 with the CPU size, census 5.5 against 51.3)
+# on a GPU launches, not caches, set the time: strips of up to 256 MB (docs/decisions.md)
 _GPU_STRIP_ELEMENTS = 1 << 26
 # INVALID_COST's float32 bit pattern read as int32 (the encoded value of an out-of-view candidate)
 _INVALID_CODE = struct.unpack("<i", struct.pack("<f", INVALID_COST))[0]
@@ -77,7 +80,8 @@ class StereoOutput(NamedTuple):
 def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int,
                   cost: str, aggregation: str, subpixel_fit: str, sgm_paths: int, temperature: float | None,
                   differentiable: bool, soft_radius: int | None, census_window: int, speckle_size: int = 0,
-                  speckle_range: float = 1.0) -> None:
+                  speckle_range: float = 1.0, uniqueness_ratio: float | None = None, sgm_p1: float | None = None,
+                  sgm_p2: float | None = None, census_max_distance: float | None = None) -> None:
     dims = check_shape(left, ["B", "1|3", "H", "W"], "left")
     check_shape(right, ["B", "1|3", "H", "W"], "right", dims)
     check_same_device(left, "left", right=right)
@@ -109,6 +113,14 @@ def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, m
         raise ValueRangeError(f"soft_radius: expected an int >= 1 or None, got {soft_radius!r}")
     if temperature is not None and not temperature > 0:
         raise ValueRangeError(f"temperature: expected > 0, got {temperature}")
+    for name, value in (("uniqueness_ratio", uniqueness_ratio), ("sgm_p1", sgm_p1), ("sgm_p2", sgm_p2)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0):
+            raise ValueRangeError(f"{name}: expected a number >= 0 or None, got {value!r}")
+    if census_max_distance is not None and (isinstance(census_max_distance, bool) or not isinstance(
+            census_max_distance, (int, float)) or not 0 <= census_max_distance <= 1):
+        raise ValueRangeError(f"census_max_distance: expected a number in [0, 1] or None, got {census_max_distance!r}")
+    if sgm_p1 is not None and sgm_p2 is not None and sgm_p2 < sgm_p1:
+        raise ValueRangeError(f"sgm_p2: expected >= sgm_p1={sgm_p1}, got {sgm_p2}")
     if isinstance(speckle_size, bool) or not isinstance(speckle_size, int) or speckle_size < 0:
         raise ValueRangeError(f"speckle_size: expected an int >= 0, got {speckle_size!r}")
     if not speckle_range >= 0:
@@ -160,10 +172,13 @@ def _right_view_index(code: torch.Tensor, max_d: int) -> torch.Tensor:
     return _decode_index(diag.amin(dim=1, keepdim=True), num)
 
 
-def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _select(vol: torch.Tensor, max_d: int, opts: dict, raw: torch.Tensor | None = None
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Disparity, validity and variance of a strip from its (reversed-order) aggregated cost ``(B, D, h, W)``.
 
-    ``vol`` holds window sums; ``opts["scale"]`` (= block**2) converts them to window means.
+    ``vol`` holds window sums; ``opts["scale"]`` (= block**2) converts them to window means. With ``raw`` (the
+    strip's costs before aggregation) and ``opts["max_raw_cost"]`` (window-sum units), a winner whose own raw cost
+    exceeds that bound is not valid.
     """
     num = vol.shape[1]
     scale = opts["scale"]
@@ -219,6 +234,10 @@ def _select(vol: torch.Tensor, max_d: int, opts: dict) -> tuple[torch.Tensor, to
             code.scatter_(1, nb, inf.expand_as(best))
         second = code.amin(dim=1, keepdim=True).view(torch.float32)
         valid &= second > c0 * (1 + opts["uniqueness_ratio"])
+    if raw is not None and opts.get("max_raw_cost") is not None:
+        # float32 bound as the compiled path rounds it (raw census costs are exact integers in float32)
+        limit = torch.tensor(opts["max_raw_cost"], dtype=torch.float32).to(raw.dtype)
+        valid &= _gather(raw.detach(), j) <= limit.to(raw.device)
     # variance: quantisation floor plus the spread of a noisy minimum, larger when the
     # minimum is shallow (small curvature) relative to its own cost level (heuristic; smooth in the costs, so a
     # loss through a Kalman gain reaches the images by it too)
@@ -267,19 +286,20 @@ def match_stereo(
     subpixel_fit: str = "equiangular",
     lr_check: bool = True,
     lr_threshold: int = 1,
-    uniqueness_ratio: float = 0.15,
+    uniqueness_ratio: float | None = None,
     texture_threshold: float = 0.004,
     prefilter: bool = True,
     prefilter_cap: float = 31.0 / 255.0,
-    census_window: int = 5,
+    census_window: int = 7,
     sgm_p1: float | None = None,
     sgm_p2: float | None = None,
     sgm_paths: int = 4,
     differentiable: bool = False,
     temperature: float | None = None,
     soft_radius: int | None = 2,
-    speckle_size: int = 100,
+    speckle_size: int = 200,
     speckle_range: float = 1.0,
+    census_max_distance: float | None = None,
 ) -> StereoOutput:
     """Dense stereo matching of a rectified pair; disparity, validity and per-pixel variance.
 
@@ -294,11 +314,23 @@ def match_stereo(
         subpixel_fit: ``"parabola"`` or ``"equiangular"``.
         lr_check: left-right consistency (right winners from the same volume), tolerance ``lr_threshold`` px.
         uniqueness_ratio: reject when a candidate beyond +-1 px of the winner costs less than
-            ``(1 + ratio)`` times the winner's (0 disables).
+            ``(1 + ratio)`` times the winner's (0 disables). None: 0.15 for box aggregation, 0.1 for SGM, whose
+            aggregated costs carry the path penalties and so differ by smaller ratios.
         texture_threshold: reject windows whose mean ``|x-Sobel|`` (clipped, [0,1] grey units) is below it.
         prefilter, prefilter_cap: x-Sobel prefilter of the SAD cost and its clip level.
-        census_window: census window (3, 5 or 7).
-        sgm_p1, sgm_p2: SGM penalties in cost units (None: per-cost defaults); ``sgm_paths`` 4 or 8.
+        census_window: census window (3, 5 or 7; 8, 24 or 48 bits). Default 7: the 48 comparisons tell noisy,
+            weakly textured windows apart better than 24 do.
+        sgm_p1, sgm_p2: SGM penalties for a disparity change of one px and of more between neighbours, in cost
+            units (window means; census: mean Hamming distance), ``0 <= sgm_p1 <= sgm_p2``. None: per-cost
+            defaults; census's are 2/3 and 8/3 times the number of census bits (``census_window**2 - 1``), strong
+            smoothing, which noisy and weakly textured surfaces need for their winners to pass the checks.
+        sgm_paths: 4 or 8 scanline directions.
+        census_max_distance: census + SGM only: reject a winner whose own window-mean Hamming distance (before
+            aggregation) exceeds this share of the census bits, in [0, 1]; unrelated windows score about 0.5. Strong
+            smoothing can carry a winner across windows that match nothing (noise, or a surface seen by one camera
+            only); this keeps such a pixel out. Default None (no such check): on noisy, weakly textured surfaces
+            right matches score like unrelated windows too, so the check costs much of SGM's density there
+            (docs/decisions.md).
         differentiable: disparity by soft-argmin over ``-cost / temperature`` (gradients reach
             both images); the checks still use the hard winner.
         temperature: soft-argmin temperature in cost units (None: per-cost default).
@@ -306,9 +338,10 @@ def match_stereo(
             (None: the whole range, which multimodal real-image costs bias badly).
         speckle_size, speckle_range: after the checks, invalidate every region of at most ``speckle_size``
             pixels whose 4-neighbours differ by at most ``speckle_range`` px (:func:`remove_speckles`; OpenCV's
-            ``speckleWindowSize`` / ``speckleRange``; 0: off). The default, 100 px within 1 px, is what OpenCV users
-            run SGBM with: a wrong match on weak texture or sensor noise rarely agrees with its neighbours over a
-            large area, while a surface does (measurements in docs/decisions.md).
+            ``speckleWindowSize`` / ``speckleRange``; 0: off). Default 200 px within 1 px: a wrong match on weak
+            texture or sensor noise rarely agrees with its neighbours over a large area, while a surface does; twice
+            the window OpenCV users run SGBM with, which removes more wrong matches for few right ones
+            (measurements in docs/decisions.md).
 
     Returns:
         :class:`StereoOutput` ``(disparity, valid, variance)``, each ``(B, 1, H, W)``.
@@ -321,10 +354,13 @@ def match_stereo(
     (torch.Size([2, 1, 16, 24]), torch.bool, torch.Size([2, 1, 16, 24]))
     """
     _check_inputs(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel_fit, sgm_paths,
-                  temperature, differentiable, soft_radius, census_window, speckle_size, speckle_range)
+                  temperature, differentiable, soft_radius, census_window, speckle_size, speckle_range,
+                  uniqueness_ratio, sgm_p1, sgm_p2, census_max_distance)
+    if uniqueness_ratio is None:
+        uniqueness_ratio = UNIQUENESS_RATIOS[aggregation]
     out = _match(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel, subpixel_fit,
                  lr_check, lr_threshold, uniqueness_ratio, texture_threshold, prefilter, prefilter_cap, census_window,
-                 sgm_p1, sgm_p2, sgm_paths, differentiable, temperature, soft_radius)
+                 sgm_p1, sgm_p2, sgm_paths, differentiable, temperature, soft_radius, census_max_distance)
     if speckle_size > 0:
         valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
         if use_compiled(out.disparity, out.variance, valid):  # numpy: no torch pass over the full maps
@@ -342,7 +378,8 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
            aggregation: str, subpixel: bool, subpixel_fit: str, lr_check: bool, lr_threshold: int,
            uniqueness_ratio: float, texture_threshold: float, prefilter: bool, prefilter_cap: float,
            census_window: int, sgm_p1: float | None, sgm_p2: float | None, sgm_paths: int, differentiable: bool,
-           temperature: float | None, soft_radius: int | None) -> StereoOutput:
+           temperature: float | None, soft_radius: int | None, census_max_distance: float | None = None
+           ) -> StereoOutput:
     """:func:`match_stereo` on checked inputs, before the speckle filter."""
     grey_l, grey_r = to_grey(left), to_grey(right)
     b, _, h, w = grey_l.shape
@@ -354,6 +391,9 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
         "cost_floor": COST_FLOORS[cost],
         "scale": float(block_size * block_size),
         "min_disparity": min_disparity,
+        # the raw-cost bound of census + SGM, in window-sum units
+        "max_raw_cost": (None if census_max_distance is None or cost != "census" or aggregation != "sgm" else
+                         census_max_distance * (census_window * census_window - 1) * block_size * block_size),
     }
     grad = needs_grad(left, right)
     scale = _integer_scale(cost, aggregation, prefilter, block_size, prefilter_cap, differentiable or grad, num)
@@ -375,6 +415,8 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
     strip = _STRIP_ELEMENTS if grey_l.device.type == "cpu" else _GPU_STRIP_ELEMENTS
     if aggregation == "sgm":
         p1, p2 = _SGM_PENALTIES[cost]
+        if cost == "census":  # per census bit
+            p1, p2 = p1 * (census_window * census_window - 1), p2 * (census_window * census_window - 1)
         p1 = (p1 if sgm_p1 is None else sgm_p1) * opts["scale"]
         p2 = (p2 if sgm_p2 is None else sgm_p2) * opts["scale"]
     if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
@@ -384,6 +426,7 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
     elif aggregation == "sgm":
         feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
         vol = strip_volume(feat, 0, h, min_disparity)
+        raw = vol if opts["max_raw_cost"] is not None else None  # (sgm_aggregate does not write into its input)
         if _graphs.usable(vol):
             # CUDA inference: the scanline recursion's ~8 launches per step (2 (H + W) steps) replayed as one graph
             sgm = partial(_sgm_outputs, p1=p1, p2=p2, paths=sgm_paths)
@@ -392,7 +435,8 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
             vol = sgm_aggregate(vol, p1, p2, sgm_paths)
         rows = max(1, strip // max(1, b * num * w))
         for y0 in range(0, h, rows):
-            parts.append(_select(vol[:, :, y0 : y0 + rows], max_disparity, opts))
+            parts.append(_select(vol[:, :, y0 : y0 + rows], max_disparity, opts,
+                                 None if raw is None else raw[:, :, y0 : y0 + rows]))
     else:
         feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
         rows = max(1, strip // max(1, b * num * (w + block_size)))

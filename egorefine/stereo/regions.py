@@ -108,7 +108,10 @@ def _matcher_settings(options: dict) -> dict:
     if unknown:
         raise ValueRangeError(f"options: not arguments of match_stereo: {sorted(unknown)}")
     settings["speckle_size"] = 0  # off unless asked for: windows cut the regions the filter sizes
-    return {**settings, **options}
+    settings = {**settings, **options}
+    if settings["uniqueness_ratio"] is None:  # match_stereo's default for the aggregation
+        settings["uniqueness_ratio"] = matching.UNIQUENESS_RATIOS.get(settings["aggregation"], 0.0)
+    return settings
 
 
 def match_stereo_regions(

@@ -104,6 +104,28 @@ def test_exceptions():
         block_matching(img, img, 8, differentiable=True, soft_radius=0)
     with pytest.raises(ValueRangeError, match="temperature"):
         block_matching(img, img, 8, differentiable=True, temperature=0.0)
+    with pytest.raises(ValueRangeError, match="uniqueness_ratio"):
+        block_matching(img, img, 8, uniqueness_ratio=-0.1)
+    with pytest.raises(ValueRangeError, match="uniqueness_ratio"):
+        block_matching(img, img, 8, uniqueness_ratio="0.1")
+    with pytest.raises(ValueRangeError, match="sgm_p1"):
+        block_matching(img, img, 8, aggregation="sgm", sgm_p1=float("nan"))
+    with pytest.raises(ValueRangeError, match="sgm_p2"):
+        block_matching(img, img, 8, aggregation="sgm", sgm_p1=2.0, sgm_p2=1.0)
+    for bad in (-0.1, 1.5, "0.3"):
+        with pytest.raises(ValueRangeError, match="census_max_distance"):
+            block_matching(img, img, 8, cost="census", aggregation="sgm", census_max_distance=bad)
+
+
+def test_uniqueness_default_per_aggregation(pair):
+    # None takes the aggregation's ratio: the same output as that ratio given explicitly
+    left, right, _ = pair
+    for aggregation, ratio in (("box", 0.15), ("sgm", 0.1)):
+        kw = {"aggregation": aggregation, "cost": "census", "block_size": 5}
+        implicit, explicit = match_stereo(left, right, 16, **kw), match_stereo(left, right, 16, uniqueness_ratio=ratio,
+                                                                                **kw)
+        for a, b in zip(implicit, explicit, strict=True):
+            assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("kw", [{}, {"cost": "zncc"}, {"cost": "census"}, {"aggregation": "sgm", "block_size": 5},

@@ -3,8 +3,9 @@
 The truth is one raw Velodyne sweep projected into the left image (sparse, about 4 % of the pixels,
 wrong at some occlusion edges), so only pixels with truth are scored: bad-3 over the pixels both
 marked valid and with truth, density over the pixels with truth. The bounds sit a little above what
-the matchers score today (benchmarks/results/real.md has the full comparison with OpenCV); the
-issue-17 target against OpenCV's SGBM is held as a strict xfail until the SGM option meets it.
+the matchers score today (benchmarks/results/real.md has the full comparison with OpenCV). Issue 17's
+targets against OpenCV: the SGM option's against SGBM is met and tested; the default matcher's against
+StereoBM is held as a strict xfail until it is met.
 """
 
 from __future__ import annotations
@@ -47,10 +48,12 @@ def _score(disparity: torch.Tensor, valid: torch.Tensor, truth: torch.Tensor, kn
 
 
 @pytest.mark.parametrize(("options", "max_bad3", "min_density"), [
-    pytest.param({}, 0.125, 0.28, id="default"),
-    pytest.param(SGM, 0.12, 0.40, id="sgm"),
+    pytest.param({}, 0.115, 0.27, id="default"),
+    # the SGM bounds failed before its penalties and checks were tuned for noisy weak texture (issue 17:
+    # bad-3 0.110 at density 0.418 with the speckle filter, 0.216 at 0.534 without)
+    pytest.param(SGM, 0.095, 0.82, id="sgm"),
     pytest.param(NO_SPECKLE, 0.20, 0.34, id="default-no-speckle"),
-    pytest.param({**SGM, **NO_SPECKLE}, 0.23, 0.51, id="sgm-no-speckle"),
+    pytest.param({**SGM, **NO_SPECKLE}, 0.11, 0.84, id="sgm-no-speckle"),
 ])
 def test_bad3_and_density_on_lidar_truth(kitti, options, max_bad3, min_density):
     (left, right), _, truth, known = kitti
@@ -76,9 +79,9 @@ def _opencv(name: str):
                                  mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 17 targets not met yet on this frame (benchmarks/results/real.md)")
 @pytest.mark.parametrize(("options", "opencv", "density_allowance"), [
-    pytest.param({}, "bm", 0.0, id="default-vs-bm"),
+    pytest.param({}, "bm", 0.0, id="default-vs-bm", marks=pytest.mark.xfail(
+        strict=True, reason="issue 17 target not met yet on this frame (benchmarks/results/real.md)")),
     pytest.param(SGM, "sgbm", 0.03, id="sgm-vs-sgbm"),
 ])
 def test_issue17_target_against_opencv(kitti, options, opencv, density_allowance):

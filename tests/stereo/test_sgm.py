@@ -72,9 +72,10 @@ def _torch_reference(left, right, max_d, min_d, block, window, p1, p2, paths, op
     from egorefine.stereo.matching import _select
 
     feat = _Features(left, right, "census", block, max_d, window, True, 31 / 255)
-    vol = sgm_aggregate(strip_volume(feat, 0, left.shape[-2], min_d), p1, p2, paths)
+    raw = strip_volume(feat, 0, left.shape[-2], min_d)
+    vol = sgm_aggregate(raw, p1, p2, paths)
     ref = vol.clone()  # _select encodes its input in place
-    return (ref, *_select(vol, max_d, opts))
+    return (ref, *_select(vol, max_d, opts, raw))
 
 
 def _random_pair(b, h, w, seed, shift=3):
@@ -88,14 +89,18 @@ needs_numba = pytest.mark.skipif(not _sgm_numba.AVAILABLE, reason="numba not ins
 
 
 @needs_numba
-@pytest.mark.parametrize(("max_d", "min_d", "block", "window", "p1", "p2", "paths", "fit", "threads"), [
-    (8, 0, 5, 5, 12.5, 75.0, 4, "equiangular", 2),  # match_stereo's census defaults (x block**2)
-    (12, 3, 3, 7, 0.37, 2.1, 8, "parabola", 1),  # penalties not exact in float32, 48-bit census, diagonals
-    (9, 0, 7, 3, 4.0, 9.0, 4, "equiangular", 3),  # odd band split, odd number of candidates
+@pytest.mark.parametrize(("max_d", "min_d", "block", "window", "p1", "p2", "paths", "fit", "threads", "max_raw"), [
+    (8, 0, 5, 5, 12.5, 75.0, 4, "equiangular", 2, None),
+    (12, 3, 3, 7, 0.37, 2.1, 8, "parabola", 1, None),  # penalties not exact in float32, 48-bit census, diagonals
+    (9, 0, 7, 3, 4.0, 9.0, 4, "equiangular", 3, None),  # odd band split, odd number of candidates
+    # match_stereo's census defaults (x block**2), with its raw-cost check (a bound not exact in float32)
+    (8, 0, 5, 7, 800.0, 3200.0, 4, "equiangular", 2, 0.35 * 48 * 25 + 0.1),
+    (10, 0, 3, 5, 96.0, 384.0, 8, "parabola", 2, 0.3 * 24 * 9),
 ])
-def test_numba_equals_torch_path(max_d, min_d, block, window, p1, p2, paths, fit, threads):
+def test_numba_equals_torch_path(max_d, min_d, block, window, p1, p2, paths, fit, threads, max_raw):
     left, right = _random_pair(2, 21, 37, seed=max_d, shift=min_d + 3)
-    opts = {**_OPTS, "subpixel_fit": fit, "scale": float(block * block), "min_disparity": min_d}
+    opts = {**_OPTS, "subpixel_fit": fit, "scale": float(block * block), "min_disparity": min_d,
+            "max_raw_cost": max_raw}
     ref_vol, ref_d, ref_v, ref_var = _torch_reference(left, right, max_d, min_d, block, window, p1, p2, paths, opts)
     d, v, var, vol = _sgm_numba.census_sgm_select(left, right, max_d, min_d, block, window, p1, p2, paths, opts,
                                                   threads=threads, return_volume=True)
@@ -173,3 +178,17 @@ def test_reused_work_volumes_do_not_leak_between_calls():
         assert torch.equal(a, b)
     _sgm_numba.release_workspace()
     assert _sgm_numba._workspace.arrays == {}
+
+
+@needs_numba
+def test_raw_cost_check_rejects_what_matches_nothing():
+    # two unrelated noise images: the default penalties make regions that agree left to right and pass the speckle
+    # filter; the opt-in raw-cost check (census_max_distance) keeps them out
+    g = torch.Generator().manual_seed(0)
+    left, right = torch.rand(1, 1, 120, 160, generator=g), torch.rand(1, 1, 120, 160, generator=g)
+    kw = {"cost": "census", "aggregation": "sgm", "block_size": 5}
+    assert match_stereo(left, right, 48, **kw).valid.float().mean() > 0.05
+    assert match_stereo(left, right, 48, census_max_distance=0.45, **kw).valid.float().mean() < 0.005
+    # a textured plane keeps its matches
+    pl, pr, _ = planar_pair(1, 40, 72, seed=3)
+    assert match_stereo(pl, pr, 16, census_max_distance=0.35, **kw).valid.float().mean() > 0.7
