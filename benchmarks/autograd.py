@@ -7,7 +7,7 @@ refiner configurations are the named keyword dicts of ``CONFIGS``; a keyword the
 ``EgoMotionRefiner`` does not take (TypeError) skips that row with a printed note.
 
 1. **torch.compile** (both sizes): ms per frame over a short sequence (``--frames``, verify_every=5, no
-   grad), as the mean over the frames of one pass, median over ``--repeats`` passes; eager with the compiled
+   grad), as the mean over the frames of one pass, median over ``--compile-repeats`` passes; eager with the compiled
    numba kernels (the default), eager on the torch path (``egorefine.core.dispatch.ENABLED = False``; under
    ``torch.compile`` every stage takes the torch path, so this is the fair baseline) and
    ``torch.compile(refiner, backend=...)``, interleaved pass by pass. The first compiled pass (tracing and
@@ -15,8 +15,8 @@ refiner configurations are the named keyword dicts of ``CONFIGS``; a keyword the
    compared with both eager paths frame by frame: max |difference| of disparity on pixels valid in both,
    and whether the validity masks are equal on every frame. Each backend runs in a fresh subprocess with a
    time limit (``--compile-timeout``); ``inductor`` first, and where it fails or runs past the limit the
-   ``eager`` (dynamo's capture only) and ``aot_eager`` (also AOTAutograd) backends too. Where a compile fails,
-   the eager columns hold one pass each.
+   ``eager`` (dynamo's capture only) and, at 320x240, ``aot_eager`` (also AOTAutograd) backends too, for the
+   first configuration that fails at that size. Where a compile fails, the eager columns hold one pass each.
 2. **Gradients** (320x240, float32): one refiner step on a prediction frame (``PREDICTION_FRAME``) and,
    separately, on a verification frame (``VERIFICATION_FRAME``). The state before the step comes from a
    no-grad run of the earlier frames; the previous left image in it (and its tracker pyramid) is rebuilt
@@ -84,6 +84,9 @@ VERIFICATION_FRAME = 5
 TARGET_FORWARD = 5.0  # forward with gradients / no-grad forward
 TARGET_BACKWARD = 3.0  # backward / forward with gradients
 FALLBACK_BACKENDS = ["eager", "aot_eager"]
+# aot_eager at the small size only: tracing it takes longer than dynamo alone, and the torch path it runs takes
+# seconds per frame at 640x480 on 2 cores
+AOT_EAGER_MAX_PIXELS = 320 * 240
 TOP = 10
 
 
@@ -210,16 +213,14 @@ def compile_worker(spec: dict) -> None:
     result["recompile_limit_hits"] = counter.hits
     result["compiled_vs_torch_path"] = compare(compiled_out, torch_out)
     result["compiled_vs_eager"] = compare(compiled_out, eager_out)
-    result["status"] = "compiled, timing"
-    save()
     samples = {"eager": [], "torch_path": [], "compiled": []}
-    for _ in range(spec["repeats"]):  # interleaved: a burst of load hits all three alike
+    for i in range(spec["repeats"]):  # interleaved: a burst of load hits all three alike
         samples["eager"].append(eager_pass()[0])
         samples["torch_path"].append(torch_pass()[0])
         samples["compiled"].append(compiled_pass()[0])
-    result.update({k: summarize(v) for k, v in samples.items()})
-    result["status"] = "ok"
-    save()
+        result.update({k: summarize(v) for k, v in samples.items()})  # saved round by round (the time limit)
+        result["status"] = "ok" if i + 1 == spec["repeats"] else f"ok, {i + 1} of {spec['repeats']} passes"
+        save()
 
 
 def run_compile(config: dict, size: tuple[int, int], backend: str, data_path: Path, args) -> dict:
@@ -371,9 +372,10 @@ def profile_step(forward, leaves) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=10, help="frames of the compile part's sequence")
+    parser.add_argument("--frames", type=int, default=6,
+                        help="frames of the compile part's sequence (6: the first, four predictions, a verification)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of the gradient steps")
-    parser.add_argument("--compile-repeats", type=int, default=3, help="timed passes of the compile part")
+    parser.add_argument("--compile-repeats", type=int, default=2, help="timed passes of the compile part")
     parser.add_argument("--configs", default=None, help="comma-separated names of CONFIGS to run (default: all)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="compile part, WxH,...")
@@ -381,7 +383,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--backends", default="inductor",
                         help="comma-separated torch.compile backends, or 'none'; the fallbacks "
                              f"({', '.join(FALLBACK_BACKENDS)}) run where the first fails or times out")
-    parser.add_argument("--compile-timeout", type=float, default=600.0, help="seconds per compile subprocess")
+    parser.add_argument("--compile-timeout", type=float, default=900.0, help="seconds per compile subprocess")
     parser.add_argument("--imaging", default="realistic", choices=["realistic", "ideal"],
                         help="the renderer's imaging (realistic, its default, for the reported run)")
     parser.add_argument("--no-profile", action="store_true")
@@ -434,6 +436,7 @@ def main(argv: list[str] | None = None) -> dict:
                 data_path = Path(tmp) / f"seq_{width}x{height}.pt"
                 lefts, rights, K, b = render(width, height, args.frames, args.imaging)
                 torch.save({"left": lefts, "right": rights, "K": K, "b": b}, data_path)
+                fell_back = False
                 for name, config in refiners.items():
                     tried = list(backends)
                     for backend in tried:
@@ -444,8 +447,12 @@ def main(argv: list[str] | None = None) -> dict:
                               + ", ".join(f"{k} {row[k]['median_ms']:.1f} ms/frame"
                                           for k in ("eager", "torch_path", "compiled") if k in row)
                               + (f"; compile {row['compile_s']:.0f} s" if "compile_s" in row else ""), flush=True)
-                        if row["status"] != "ok" and backend == backends[0]:
-                            tried += [f for f in FALLBACK_BACKENDS if f not in tried]
+                        # The fallbacks run for the first configuration whose first backend fails at this size (the
+                        # failure seen so far is on frame 0, which every configuration here runs alike).
+                        if row["status"] != "ok" and backend == backends[0] and not fell_back:
+                            fell_back = True
+                            tried += [f for f in FALLBACK_BACKENDS if f not in tried
+                                      and (f != "aot_eager" or width * height <= AOT_EAGER_MAX_PIXELS)]
 
     if args.out is None:
         path = RESULTS / "autograd.json"
@@ -492,9 +499,9 @@ def table(payload: dict) -> str:
             "the default (compiled kernels) and the torch path; fwd ratio = forward with gradients / default "
             f"no-grad forward (in brackets: / torch-path no-grad), target <= {TARGET_FORWARD:g}x; bwd ratio = "
             f"backward / forward with gradients, target <= {TARGET_BACKWARD:g}x. Loss: mean refined disparity "
-            "over valid pixels; |grad| = L1 norm of its gradient w.r.t. the previous frame's left image.\n\n"
+            "over valid pixels; grad L1: the L1 norm of its gradient w.r.t. the previous frame's left image.\n\n"
             + markdown_table(["configuration", "step", "no-grad ms", "no-grad torch path ms", "fwd+grad ms",
-                              "backward ms", "fwd ratio", "target", "bwd ratio", "target", "|grad| prev left"],
+                              "backward ms", "fwd ratio", "target", "bwd ratio", "target", "grad L1, prev left"],
                              grad_rows))
     comp_rows = []
     for r in payload["compile"]:
@@ -523,7 +530,7 @@ def table(payload: dict) -> str:
         p = r.get("profile")
         if not p:
             continue
-        fmt = lambda rows: ", ".join(f"{x['name']} {x['ms']:.1f}" for x in rows)  # noqa: E731
+        fmt = lambda rows: ", ".join(f"`{x['name']}` {x['ms']:.1f}" for x in rows)  # noqa: E731
         profiles.append(f"- {r['config']}, {r['kind']} step: forward, egorefine functions by cumulative ms: "
                         f"{fmt(p['forward_functions'])}; forward ops by self ms: {fmt(p['forward_ops'])}; "
                         f"backward nodes by total ms: {fmt(p['backward_nodes'])}; backward ops by self ms: "
