@@ -525,6 +525,14 @@ def table(payload: dict) -> str:
             + markdown_table(["size", "configuration", "backend", "eager ms/frame", "eager torch path ms/frame",
                               "compiled ms/frame", "compiled / torch path", "compile s", "graphs / breaks / limit",
                               "match vs torch path", "match vs eager", "status"], comp_rows))
+    parity, seen = [], set()
+    for r in payload["compile"]:
+        if "eager_vs_torch_path" in r and (r["size"], r["config"]) not in seen:
+            seen.add((r["size"], r["config"]))
+            parity.append(f"{r['size']} {r['config']}: {_match(r['eager_vs_torch_path'])}")
+    if parity:
+        parts.append("Eager with the compiled kernels against eager on the torch path (the two paths' own parity, "
+                     "no compiling): " + "; ".join(parity) + ".")
     profiles = []
     for r in payload["grad"]:
         p = r.get("profile")
