@@ -41,6 +41,7 @@ bench: $(VENV)/.installed-dev
 	$(PY) benchmarks/ego_motion.py
 	$(PY) benchmarks/refine.py
 	$(PY) benchmarks/euroc_static.py
+	$(PY) benchmarks/autograd.py
 
 clean:
 	rm -rf $(VENV) results .pytest_cache docs/_build
