@@ -38,6 +38,7 @@ lint: $(VENV)/.installed-dev
 bench: $(VENV)/.installed-dev
 	$(PY) benchmarks/stereo.py
 	$(PY) benchmarks/real.py
+	$(PY) benchmarks/learning.py
 	$(PY) benchmarks/ego_motion.py
 	$(PY) benchmarks/refine.py
 	$(PY) benchmarks/euroc_static.py
