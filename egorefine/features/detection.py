@@ -201,15 +201,20 @@ def detect(
 
     Args:
         image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image in [0, 1].
-        max_features: the number of slots N.
-        grid: (rows, cols) of the bucketing grid.
-        response: ``"gftt"`` (Shi-Tomasi) or ``"harris"``.
-        nms_radius: radius of the non-maximum suppression window.
-        quality: relative threshold, a fraction of each image's maximum response.
-        min_response: absolute threshold in squared-gradient units (kornia's Sobel of [0, 1] images).
-        border: keypoints closer than this to the image edge are dropped.
-        subpixel: ``"gradient"``, ``"quadratic"`` or ``"none"``.
-        k: the Harris constant (``response="harris"`` only).
+        max_features: the number of slots N (500: the refiner's budget on a 640x480 frame).
+        grid: (rows, cols) of the bucketing grid (8 x 8: features over the whole view, which conditions the
+            motion solve better than a cluster on the richest texture).
+        response: ``"gftt"`` (Shi-Tomasi, the default: it has no constant to tune) or ``"harris"``.
+        nms_radius: radius of the non-maximum suppression window (3 px: neighbours stay apart by more than
+            the tracker's sub-pixel step can confuse).
+        quality: relative threshold, a fraction of each image's maximum response (0.01, OpenCV's
+            ``goodFeaturesToTrack`` habit).
+        min_response: absolute threshold in squared-gradient units (kornia's Sobel of [0, 1] images; 1e-4: a
+            black or flat image has no corners, whatever ``quality`` says).
+        border: keypoints closer than this to the image edge are dropped (8 px: the tracker's patch and its
+            search stay inside the image).
+        subpixel: ``"gradient"`` (the default: exact for ideal junctions), ``"quadratic"`` or ``"none"``.
+        k: the Harris constant (``response="harris"`` only; 0.04, the usual value).
 
     Returns:
         keypoints ``(B, N, 2)`` as (x, y) pixels, and weights ``(B, N)`` in {0, 1}; empty slots

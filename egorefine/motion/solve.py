@@ -495,17 +495,23 @@ def solve_ego_motion(
         baseline: ``(B,)`` metres, > 0.
         weights: ``(B, N)`` >= 0 feature weights (0 = no feature); default all 1.
         method: ``"linear"`` (paper, eq. 3), ``"robust"`` (RANSAC around eq. 3) or ``"exact"``
-            (SE(3) Levenberg-Marquardt on the reprojection error, from the robust solution).
+            (SE(3) Levenberg-Marquardt on the reprojection error, from the robust solution; the default: the
+            first-order model is biased at the rotations and depth changes of a real frame step).
         valid_prev: ``(B, 1, H, W)`` bool, where ``disparity_prev`` (a map) is valid.
-        min_features: fewest features with positive final weight for ``ok`` (at least 3).
-        loss: kernel of the last ``"exact"`` iterations: ``"tukey"``, ``"huber"`` or ``"l2"``
-            (with ``"l2"`` or ``"huber"`` only the RANSAC inliers take part).
-        scale: residual scale of the robust kernels, pixels (Huber 1.345, Tukey 4.685 times it).
-        ransac_hypotheses: minimal sets per item (``"robust"``/``"exact"``).
+        min_features: fewest features with positive final weight for ``ok`` (3, the minimum that fixes a rigid
+            motion).
+        loss: kernel of the last ``"exact"`` iterations: ``"tukey"`` (the default: it gives gross track errors
+            zero weight and re-admits inliers RANSAC missed), ``"huber"`` or ``"l2"`` (with ``"l2"`` or
+            ``"huber"`` only the RANSAC inliers take part).
+        scale: residual scale of the robust kernels, pixels (Huber 1.345, Tukey 4.685 times it; 1 px: the size
+            of a good track's error).
+        ransac_hypotheses: minimal sets per item (``"robust"``/``"exact"``; 64: enough to draw an outlier-free
+            set at the outlier shares of tracking, as one batched solve).
         ransac_threshold: inlier threshold of RANSAC on the linear model's residual, pixels;
             it must allow for the first-order model's bias.
-        iterations: LM iterations of ``"exact"`` (half Huber on RANSAC inliers, half ``loss``).
-        seed: seed of RANSAC's generator.
+        iterations: LM iterations of ``"exact"`` (half Huber on RANSAC inliers, half ``loss``; 3: from the robust
+            start LM converges in a few steps).
+        seed: seed of RANSAC's generator (fixed: the same tracks give the same motion).
         rcond: smallest reciprocal condition number of the Jacobi-scaled normal matrix
             accepted as ``ok``; default 1e-6 (float32) or 1e-9 (float64).
 
