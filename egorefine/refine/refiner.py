@@ -255,29 +255,30 @@ class EgoMotionRefiner(nn.Module):
 
     @property
     def gain(self) -> float | torch.Tensor:
-        """The paper rule's gain in (0, 1] (learnable: ``sigmoid(gain_logit)``, a 0-d tensor)."""
+        """The paper rule's gain, in (0, 1]; with ``learnable=True`` the 0-d tensor ``sigmoid(gain_logit)``."""
         return self._value("gain")
 
     @property
     def gate(self) -> float | torch.Tensor:
-        """The paper rule's gate, px (learnable: ``exp(log_gate)``)."""
+        """The paper rule's gate in px; with ``learnable=True`` the 0-d tensor ``exp(log_gate)``."""
         return self._value("gate")
 
     @property
     def process_noise(self) -> float | torch.Tensor:
-        """Kalman mode's process noise, px^2 per predicted frame (learnable: ``exp(log_process_noise)``)."""
+        """Kalman mode's process noise in px^2 per predicted frame; with ``learnable=True``
+        ``exp(log_process_noise)``."""
         return self._value("process_noise")
 
     @property
     def noise_scale(self) -> float | torch.Tensor:
-        """Kalman mode's scale of the matcher's measurement variance (1 unless learnable:
-        ``exp(log_noise_scale)``)."""
+        """Kalman mode's scale of the matcher's measurement variance; 1, or with ``learnable=True``
+        ``exp(log_noise_scale)``."""
         return self._value("noise_scale")
 
     @property
     def temperature(self) -> float | torch.Tensor:
-        """The soft-argmin matcher's temperature in cost units (``differentiable=True``; learnable:
-        ``exp(log_temperature)``)."""
+        """The soft-argmin matcher's temperature in cost units (``differentiable=True``); with ``learnable=True``
+        ``exp(log_temperature)``."""
         return self._value("temperature")
 
     def _variance_scale(self, grey: torch.Tensor, meas: StereoOutput) -> torch.Tensor | float:
