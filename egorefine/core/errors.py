@@ -20,27 +20,75 @@ __all__ = [
 
 
 class EgorefineError(Exception):
-    """Base class of every error egorefine raises on purpose."""
+    """Base class of every error egorefine raises on purpose: ``except EgorefineError`` catches bad input of any
+    kind and lets programming errors (a bare ``RuntimeError``) through.
+
+    Example:
+        >>> import torch
+        >>> from egorefine.stereo import match_stereo
+        >>> try:
+        ...     match_stereo(torch.rand(1, 1, 8, 8), torch.rand(1, 1, 8, 9), 4)
+        ... except EgorefineError as err:
+        ...     type(err).__name__
+        'ShapeError'
+    """
 
 
 class ShapeError(EgorefineError, ValueError):
-    """A tensor has the wrong rank or size, or two tensors disagree on a shared dimension."""
+    """A tensor has the wrong rank or size, or two tensors disagree on a shared dimension.
+
+    Example:
+        >>> import torch
+        >>> from egorefine.core import check_shape
+        >>> check_shape(torch.zeros(2, 4), ["B", "3"], "points")
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ShapeError: points: expected shape (B, 3), got (2, 4)
+    """
 
 
 class DTypeError(EgorefineError, TypeError):
-    """A tensor (or argument) has the wrong type, e.g. an integer image where float is needed."""
+    """A tensor (or argument) has the wrong type, e.g. an integer image where float is needed.
+
+    Example:
+        >>> import torch
+        >>> from egorefine.core import check_float
+        >>> check_float(torch.zeros(2, dtype=torch.uint8), "left")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.DTypeError: left: ...
+    """
 
 
 class DeviceError(EgorefineError, ValueError):
-    """Tensors that must live together are on different devices."""
+    """Tensors that must live together are on different devices.
+
+    Example:
+        >>> issubclass(DeviceError, ValueError)  # so ``except ValueError`` still catches it
+        True
+    """
 
 
 class ValueRangeError(EgorefineError, ValueError):
-    """A value is out of its allowed range: NaN/Inf, a non-positive baseline, a bad option."""
+    """A value is out of its allowed range: NaN/Inf, a non-positive baseline, a bad option.
+
+    Example:
+        >>> from egorefine.core import check_choice
+        >>> check_choice("kalmann", ["paper", "kalman"], "fusion")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: fusion: ...
+    """
 
 
 class StateError(EgorefineError, ValueError):
-    """A carried state does not fit the current input (other resolution, device or batch)."""
+    """A carried state does not fit the current input (other resolution, device or batch): start a new sequence
+    with ``state=None``.
+
+    Example:
+        >>> issubclass(StateError, EgorefineError)
+        True
+    """
 
 
 class DataError(EgorefineError, ValueError):

@@ -108,6 +108,12 @@ class TrackOutput(NamedTuple):
         fb_error: ``(B, N)`` forward-backward round-trip error in pixels (0 where the check did not
             run: without it, on features already failed, and with ``fb_predicted=False`` on those
             found next to their prediction).
+
+    Example:
+        >>> img = torch.rand(1, 1, 64, 64)
+        >>> out = track(img, img, torch.tensor([[[32.0, 32.0]]]), torch.ones(1, 1))
+        >>> out.keypoints.shape, out.weights.shape, out.score.shape, out.fb_error.shape
+        (torch.Size([1, 1, 2]), torch.Size([1, 1]), torch.Size([1, 1]), torch.Size([1, 1]))
     """
 
     keypoints: torch.Tensor

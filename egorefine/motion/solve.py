@@ -86,6 +86,14 @@ class EgoMotion(NamedTuple):
         num_inliers: ``(B,)`` long, features with positive final weight.
         rms: ``(B,)`` weighted RMS residual of the final fit in pixels (of the linear model
             for ``"linear"``/``"robust"``, the reprojection error for ``"exact"``).
+
+    Example:
+        >>> from egorefine.geometry import make_intrinsics
+        >>> pts = torch.rand(1, 30, 2) * 300
+        >>> res = solve_ego_motion(pts, pts, torch.full((1, 30), 8.0), make_intrinsics(400.0, 150.0, 150.0),
+        ...                        torch.ones(1))
+        >>> res.motion.shape, bool(res.ok), torch.allclose(res.motion, torch.eye(4)[None], atol=1e-4)
+        (torch.Size([1, 4, 4]), True, True)
     """
 
     motion: torch.Tensor
