@@ -145,6 +145,13 @@ def write_confidence(stem: PathLike, confidence: torch.Tensor | np.ndarray, fmt:
 
     Returns:
         The written file.
+
+    Example:
+        >>> import tempfile
+        >>> import cv2
+        >>> p = write_confidence(Path(tempfile.mkdtemp()) / "c", torch.tensor([[0.0, 0.5], [1.0, 2.0]]))
+        >>> p.suffix, cv2.imread(str(p), cv2.IMREAD_UNCHANGED).tolist()
+        ('.png', [[0, 32768], [65535, 65535]])
     """
     path = Path(os.fspath(stem) + _check_format(fmt))
     c = np.clip(np.nan_to_num(_plane(confidence, "confidence").astype(np.float32)), 0.0, 1.0)
@@ -226,6 +233,13 @@ def read_disparity(path: PathLike) -> tuple[torch.Tensor, torch.Tensor]:
     Raises:
         FileNotFoundError: no file at ``path``.
         ValueRangeError: an unknown suffix, or a file that is not a single-channel map.
+
+    Example:
+        >>> import tempfile
+        >>> d = torch.tensor([[1.5, -1.0]])
+        >>> disparity, valid = read_disparity(write_disparity(Path(tempfile.mkdtemp()) / "d", d, d > 0, fmt="npy"))
+        >>> disparity.tolist(), valid.tolist()
+        ([[1.5, 0.0]], [[True, False]])
     """
     path = Path(path)
     suffix = path.suffix.lower()
