@@ -201,34 +201,14 @@ class EgoMotionRefiner(nn.Module):
         self.correction, self.search, self.schedule = correction, search, schedule
 
         self.max_disparity = int(max_disparity)
-        self.min_disparity = int(stereo.min_disparity)
         self.verify_every = int(verify_every)
         self.fusion = fusion
         self.motion_method = motion_method
-        # the groups' fields as the loop reads them
-        self.adaptive, self.min_coverage = schedule.adaptive, float(schedule.min_coverage)
-        self.min_confidence = float(schedule.min_confidence)
-        self.max_features, self.min_tracks = int(tracking.max_features), int(tracking.min_tracks)
-        self.soft_tracking = tracking.soft
-        self.splat, self.fill_cracks = prediction.splat, bool(prediction.fill_cracks)
-        self.kalman_gate, self.reset_after = float(correction.kalman_gate), int(correction.reset_after)
-        self.edge_aware, self.edge_kernel = bool(correction.edge_aware), int(correction.edge_kernel)
-        mu = correction.max_unverified_variance
-        self.max_unverified_variance = None if mu is None else float(mu)
-        self.gate_softness = None if correction.gate_softness is None else float(correction.gate_softness)
-        self.local_search, self.local_search_block = int(search.local_search), int(search.block)
-        self.local_search_window = search.window
-        self.measure_holes, self.max_hole_variance = bool(search.measure_holes), float(search.max_hole_variance)
-        margin = search.hole_background_margin
-        self.hole_background_margin = None if margin is None else float(margin)
-        self.stereo_options = stereo.matcher_options()
-        if self.differentiable:
-            self.stereo_options["differentiable"] = True
         # The settings learning may change: plain numbers, or (learnable) unconstrained parameters mapped into
         # their ranges (gain: a logistic of gain_logit; the positive ones: exp of a log), so that no optimiser step
         # can leave a range.
         self.learnable = bool(learnable)
-        temperature = float(_TEMPERATURES[self.stereo_options.get("cost", "sad")] if stereo.temperature is None
+        temperature = float(_TEMPERATURES[stereo.cost or "sad"] if stereo.temperature is None
                             else stereo.temperature)
         fixed = {"gain": float(correction.gain), "gate": float(correction.gate),
                  "process_noise": float(prediction.process_noise), "noise_scale": 1.0, "temperature": temperature}
@@ -343,20 +323,22 @@ class EgoMotionRefiner(nn.Module):
             return True
         # One host sync per frame: the schedule decides whether a whole matcher call happens.
         trouble = ~motion_ok
-        if self.adaptive:
-            trouble = trouble | (coverage < self.min_coverage) | (conf < self.min_confidence)
+        if self.schedule.adaptive:
+            trouble = trouble | (coverage < self.schedule.min_coverage) | (conf < self.schedule.min_confidence)
         return bool(trouble.any())
 
     def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int, why: str = "verification"):
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
-        return match_stereo(left, right, self.max_disparity, min_disparity=self.min_disparity, **self._matcher())
+        return match_stereo(left, right, self.max_disparity, min_disparity=self.stereo.min_disparity,
+                            **self._matcher())
 
     def _matcher(self) -> dict:
         """The matcher's keyword arguments (the soft-argmin's temperature read at call time: it may learn)."""
-        if not self.differentiable:
-            return self.stereo_options
-        return {**self.stereo_options, "temperature": self.temperature}
+        options = self.stereo.matcher_options()
+        if self.differentiable:
+            options.update(differentiable=True, temperature=self.temperature)
+        return options
 
     def _correct(self, grey, pred, meas, outlier_count: torch.Tensor, verification: bool):
         """Step 4: fuse a measurement (full stereo, or the residual search) into the prediction by ``fusion``.
@@ -365,17 +347,18 @@ class EgoMotionRefiner(nn.Module):
         at verifications only (between them a prediction the residual search did not cover stays as it was)."""
         kalman = self.fusion == "kalman"
         pred_var = pred.variance
-        if kalman and self.edge_aware:
-            pred_var = edge_variance(pred.disparity, pred.valid, self.edge_kernel, base=pred_var)
+        if kalman and self.correction.edge_aware:
+            pred_var = edge_variance(pred.disparity, pred.valid, self.correction.edge_kernel, base=pred_var)
         meas_var = meas.variance
         if self.learnable or self.confidence_net is not None:
             meas_var = meas_var * self._variance_scale(grey, meas)
         return correct_disparity(
             pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
             predicted_variance=pred_var, measured_variance=meas_var, predicted_valid=pred.valid,
-            outlier_count=outlier_count, kalman_gate=self.kalman_gate, reset_after=self.reset_after,
-            max_unverified_variance=self.max_unverified_variance if kalman and verification else None,
-            gate_softness=self.gate_softness,
+            outlier_count=outlier_count, kalman_gate=self.correction.kalman_gate,
+            reset_after=self.correction.reset_after,
+            max_unverified_variance=self.correction.max_unverified_variance if kalman and verification else None,
+            gate_softness=self.correction.gate_softness,
         )
 
     # -- one frame ---------------------------------------------------------------------------------------------
@@ -420,7 +403,7 @@ class EgoMotionRefiner(nn.Module):
         pyramid = tuple(build_pyramid(grey, _TRACK_LEVELS))
         tracked = track(state.image, grey, state.keypoints, state.weights, predicted=expected, levels=_TRACK_LEVELS,
                         prev_pyramid=None if state.pyramid is None else list(state.pyramid),
-                        next_pyramid=list(pyramid), fb_predicted=False, fb_levels=1, soft=self.soft_tracking)
+                        next_pyramid=list(pyramid), fb_predicted=False, fb_levels=1, soft=self.tracking.soft)
         # 2. ego-motion from the tracks (eq. 2, 3), Z from the previous disparity.
         ego = solve_ego_motion(
             state.keypoints,
@@ -454,7 +437,7 @@ class EgoMotionRefiner(nn.Module):
             baseline,
             variance=state.key_variance,
             valid=state.key_valid,
-            mode=self.splat,
+            mode=self.prediction.splat,
             process_noise=process_noise * steps,
         )
         # Holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it (fill_cracks).
@@ -463,17 +446,17 @@ class EgoMotionRefiner(nn.Module):
         # corridor whose truth there is 11 px grows past 100 px within four frames forward, and its large footprint
         # wins the z-buffer): they are not valid, and carry no confidence.
         pred = finish_prediction(pred, state.key_disparity, state.key_variance, state.key_valid, key_motion, K,
-                                 baseline, process_noise * steps, self.fill_cracks,
-                                 (self.min_disparity, self.max_disparity))
+                                 baseline, process_noise * steps, self.prediction.fill_cracks,
+                                 (self.stereo.min_disparity, self.max_disparity))
         coverage = conf = None
-        if self.adaptive:
+        if self.schedule.adaptive:
             coverage = pred.valid.flatten(1).float().mean(1)
             conf = pred.confidence.flatten(1).mean(1)
         stereo_ran = self._needs_stereo(frame, ok, coverage, conf)
 
         disparity, variance, valid, outliers = pred.disparity, pred.variance, pred.valid, state.outlier_count
         confidence = pred.confidence
-        measure_holes = self.measure_holes and not stereo_ran and right is not None
+        measure_holes = self.search.measure_holes and not stereo_ran and right is not None
         if stereo_ran:
             # 4. verify against fresh stereo and correct.
             why = "verification" if frame % self.verify_every == 0 else (
@@ -495,11 +478,11 @@ class EgoMotionRefiner(nn.Module):
                 disparity, variance, valid, outliers = _overrule(
                     (disparity, variance, valid, outliers), pred, meas, keep=rejected, restart=~ok, regions=reset)
             confidence = _confidence(valid, variance)
-        elif self.local_search and right is not None:
+        elif self.search.local_search and right is not None:
             # 4'. no stereo on this frame: a narrow residual search around the prediction corrects it.
-            meas = match_residual(grey, right, pred.disparity, radius=self.local_search,
-                                  block_size=self.local_search_block, prior_valid=pred.valid,
-                                  window=self.local_search_window)
+            meas = match_residual(grey, right, pred.disparity, radius=self.search.local_search,
+                                  block_size=self.search.block, prior_valid=pred.valid,
+                                  window=self.search.window)
             cor = self._correct(grey, pred, meas, state.outlier_count, verification=False)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             if not measure_holes:  # (the hole step computes it)
@@ -511,16 +494,17 @@ class EgoMotionRefiner(nn.Module):
             hole = torch.from_numpy(np.logical_not(valid.numpy())) if valid.device.type == "cpu" else ~valid
             meas = match_stereo_regions(grey, right, hole, self.max_disparity, tile=_HOLE_TILE,
                                         min_fraction=_HOLE_SHARE,
-                                        min_disparity=self.min_disparity, **self._matcher())
+                                        min_disparity=self.stereo.min_disparity, **self._matcher())
             disparity, variance, valid, outliers, confidence = _take_hole_measurements(
-                disparity, variance, valid, outliers, meas, pred, self.max_hole_variance, self.hole_background_margin)
+                disparity, variance, valid, outliers, meas, pred, self.search.max_hole_variance,
+                self.search.hole_background_margin)
         # 5. keep the tracks, top up when they thin out.
         keypoints, weights = tracked.keypoints, tracked.weights
         live = (weights > 0).sum(1)
-        need = live < self.min_tracks
+        need = live < self.tracking.min_tracks
         if bool(need.any()):
             # Only items that ran short get new features: an item's tracks never depend on its batch neighbours.
-            new_kp, new_w = replenish(grey, keypoints, weights, max_features=self.max_features)
+            new_kp, new_w = replenish(grey, keypoints, weights, max_features=self.tracking.max_features)
             keypoints = torch.where(need[:, None, None], new_kp, keypoints)
             weights = torch.where(need[:, None], new_w, weights)
 
@@ -539,9 +523,9 @@ class EgoMotionRefiner(nn.Module):
     ) -> tuple[RefinerOutput, RefinerState]:
         B = grey.shape[0]
         meas = self._stereo(grey, right, 0)
-        empty_kp = torch.zeros(B, self.max_features, 2, device=grey.device, dtype=grey.dtype)
-        empty_w = torch.zeros(B, self.max_features, device=grey.device, dtype=grey.dtype)
-        keypoints, weights = replenish(grey, empty_kp, empty_w, max_features=self.max_features)
+        empty_kp = torch.zeros(B, self.tracking.max_features, 2, device=grey.device, dtype=grey.dtype)
+        empty_w = torch.zeros(B, self.tracking.max_features, device=grey.device, dtype=grey.dtype)
+        keypoints, weights = replenish(grey, empty_kp, empty_w, max_features=self.tracking.max_features)
         ok = torch.ones(B, dtype=torch.bool, device=grey.device)
         confidence = _confidence(meas.valid, meas.variance)
         status = torch.zeros(B, dtype=torch.int64, device=grey.device)

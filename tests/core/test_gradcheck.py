@@ -214,11 +214,7 @@ def test_edge_variance_gradcheck():
 
 def _loop(seq, refiner, theta, fx_shift, dirs, verify_pattern):
     """Three frames; left[0] moved along ``dirs`` by ``theta``; K's focal length shifted by ``fx_shift``."""
-    K = seq.K[None].to(F64).clone()
-    K = K + torch.zeros_like(K).index_put_((torch.tensor([0]), torch.tensor([0]), torch.tensor([0])),
-                                           torch.ones(1, dtype=F64)) * fx_shift
-    K = K + torch.zeros_like(K).index_put_((torch.tensor([0]), torch.tensor([1]), torch.tensor([1])),
-                                           torch.ones(1, dtype=F64)) * fx_shift
+    K = seq.K[None].to(F64) + fx_shift * torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=F64))  # fx and fy
     b = torch.tensor([seq.baseline], dtype=F64)
     state, outs = None, []
     for t in range(3):

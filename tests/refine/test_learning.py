@@ -143,9 +143,9 @@ def test_bad_learnable_settings_raise(seq):
 
 def test_differentiable_preset_sets_its_parts_unless_chosen():
     r = EgoMotionRefiner(differentiable=True, **SMALL)
-    assert r.splat == "soft" and r.soft_tracking and r.gate_softness == 0.1
-    assert r.stereo_options["differentiable"] is True
+    assert r.prediction.splat == "soft" and r.tracking.soft and r.correction.gate_softness == 0.1
+    assert r._matcher()["differentiable"] is True
     r = EgoMotionRefiner(differentiable=True, splat="hard", soft_tracking=False, gate_softness=0.3, **SMALL)
-    assert r.splat == "hard" and not r.soft_tracking and r.gate_softness == 0.3
+    assert r.prediction.splat == "hard" and not r.tracking.soft and r.correction.gate_softness == 0.3
     plain = EgoMotionRefiner(**SMALL)
-    assert plain.splat == "hard" and not plain.soft_tracking and plain.gate_softness is None
+    assert plain.prediction.splat == "hard" and not plain.tracking.soft and plain.correction.gate_softness is None

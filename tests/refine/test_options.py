@@ -54,7 +54,7 @@ def test_flat_keywords_warn_and_give_the_grouped_refiner():
                            search=SearchOptions(local_search=2), correction=CorrectionOptions(gain=0.3))
     for group in GROUPS:
         assert getattr(old, group) == getattr(new, group)
-    assert old.max_features == 64 and old.local_search == 2 and old.gain == 0.3
+    assert old.tracking.max_features == 64 and old.search.local_search == 2 and old.gain == 0.3
 
 
 def test_flat_keywords_apply_on_top_of_a_group_and_unknown_ones_fail():

@@ -257,7 +257,7 @@ def test_kalman_validity_rules_against_truth():
             stereo = egorefine.stereo.match_stereo(seq.left[1:], seq.right[1:], SMALL["max_disparity"])
             unverified = v & ~stereo.valid
             var = torch.cat([o.variance for o in outs[1:]])
-            assert unverified.any() and (var[unverified] <= refiner.max_unverified_variance + 1e-6).all()
+            assert unverified.any() and (var[unverified] <= refiner.correction.max_unverified_variance + 1e-6).all()
     (epe_off, bad_off, dens_off), (epe_on, bad_on, dens_on) = scores[False], scores[True]
     assert bad_on < 0.85 * bad_off, scores
     assert epe_on < epe_off, scores
