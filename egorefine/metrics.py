@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .core import ShapeError, check_float, check_shape
+from .core import ShapeError, ValueRangeError, check_float, check_shape
 
 __all__ = [
     "epe",
@@ -23,6 +23,7 @@ __all__ = [
     "evaluate_disparity",
     "distinct_levels",
     "temporal_consistency",
+    "tile_shift",
     "translation_error",
     "rotation_error_deg",
     "compose_motions",
@@ -276,6 +277,77 @@ def temporal_consistency(
     pair = mask[1:] & mask[:-1]
     diff = (err[1:] - err[:-1]).abs()
     return _masked_mean(torch.where(pair, diff, torch.zeros_like(diff)), pair)
+
+
+def tile_shift(
+    disparity: torch.Tensor,
+    reference: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    tile: int = 32,
+    min_share: float = 0.5,
+) -> torch.Tensor:
+    """Median over image tiles of ``|median(disparity - reference)|`` in each tile: a map's systematic shift.
+
+    Drift is a systematic change: a map that slides, as a whole or region by region, away from where it was. A
+    per-pixel distance between two maps cannot separate it from their noise: two independent measurements of the
+    same surface differ per pixel by about their noise however long the sequence, and a filter that averages
+    measurements moves away from a noisy first map while it converges. A tile's median difference keeps a shift
+    shared by the tile and averages independent per-pixel noise away, so a still camera's refined map compared with
+    its (motion-compensated) first map scores the drift, not the first map's noise. The median over tiles keeps a
+    few tiles with a real change (an occluder) from dominating.
+
+    Args:
+        disparity: ``(B, 1, H, W)`` maps (any shape ending in ``(H, W)``).
+        reference: the maps to compare with, the shape of ``disparity``.
+        mask: bool, the shape of ``disparity``, pixels to compare; default where both are finite.
+        tile: tile side in pixels (default 32: several matching windows, so a tile's median averages many
+            independent errors while a region's shift still fills it). Partial tiles at the right and bottom edges
+            are left out.
+        min_share: a tile counts when at least this share of its pixels is in the mask (default 0.5).
+
+    Returns:
+        0-dim tensor in pixels over the counted tiles of every item (NaN when none counts).
+
+    Raises:
+        ShapeError: shapes differ, or the maps are smaller than one tile.
+        ValueRangeError: ``tile < 1`` or ``min_share`` outside (0, 1].
+
+    Example:
+        >>> ref = torch.rand(1, 1, 64, 64) * 10
+        >>> noisy = ref + 0.2 * torch.randn(1, 1, 64, 64, generator=torch.Generator().manual_seed(0))
+        >>> bool(tile_shift(noisy, ref) < 0.05)  # per-pixel noise of 0.2 px is averaged away
+        True
+        >>> tile_shift(ref + 0.1, ref)  # a shift of the whole map is kept
+        tensor(0.1000)
+    """
+    check_float(disparity, "disparity")
+    if disparity.shape != reference.shape or disparity.dim() < 2:
+        raise ShapeError(f"reference: expected the shape of disparity {tuple(disparity.shape)}, "
+                         f"got {tuple(reference.shape)}")
+    if mask is not None and mask.shape != disparity.shape:
+        raise ShapeError(f"mask: expected the shape of disparity {tuple(disparity.shape)}, got {tuple(mask.shape)}")
+    if int(tile) < 1:
+        raise ValueRangeError(f"tile: expected >= 1, got {tile}")
+    if not 0.0 < float(min_share) <= 1.0:
+        raise ValueRangeError(f"min_share: expected in (0, 1], got {min_share}")
+    H, W = disparity.shape[-2:]
+    ny, nx = H // tile, W // tile
+    if ny == 0 or nx == 0:
+        raise ShapeError(f"disparity: expected at least one {tile}x{tile} tile, got {H}x{W}")
+    diff = disparity - reference.to(disparity.dtype)
+    ok = torch.isfinite(diff) if mask is None else mask.bool() & torch.isfinite(diff)
+    diff = torch.where(ok, diff, torch.full_like(diff, float("nan")))
+
+    def tiles(x: torch.Tensor) -> torch.Tensor:  # (..., H, W) -> (N, tile * tile)
+        x = x[..., : ny * tile, : nx * tile].reshape(-1, ny, tile, nx, tile)
+        return x.permute(0, 1, 3, 2, 4).reshape(-1, tile * tile)
+
+    share = tiles(ok).float().mean(-1)
+    medians = tiles(diff).nanmedian(-1).values
+    counted = share >= min_share
+    if not bool(counted.any()):
+        return diff.new_tensor(float("nan"))
+    return medians[counted].abs().median()
 
 
 def translation_error(est: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:

@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-from egorefine.core import ShapeError
+from egorefine.core import ShapeError, ValueRangeError
 from egorefine.geometry import se3_exp
 from egorefine.metrics import (
     absolute_trajectory_error,
@@ -21,6 +21,7 @@ from egorefine.metrics import (
     rmse,
     rotation_error_deg,
     temporal_consistency,
+    tile_shift,
     translation_error,
 )
 
@@ -121,3 +122,35 @@ def test_motions_from_poses_inverts_compose_and_evaluate_trajectory():
     assert m["rpe_rotation_mean_deg"] < 1e-5 and m["ate_rmse_m"] > 0.005
     with pytest.raises(ShapeError, match="at least 2"):
         evaluate_trajectory(poses[:1], poses[:1])
+
+
+def test_tile_shift_keeps_regional_shifts_and_averages_noise_away():
+    g = torch.Generator().manual_seed(3)
+    ref = 5 + 20 * torch.rand(2, 1, 96, 128, generator=g)
+    noise = 0.3 * torch.randn(ref.shape, generator=g)
+    # per-pixel noise: a per-pixel median distance sees it, the tile measure averages it away
+    assert (ref + noise - ref).abs().median() > 0.15
+    assert tile_shift(ref + noise, ref) < 0.03
+    # a region's shift: 3 of the 4 tile columns (9 of each item's 12 tiles) moved by 0.2 px, the rest still
+    shifted = ref.clone()
+    shifted[..., :, :96] += 0.2
+    torch.testing.assert_close(tile_shift(shifted + noise, ref), torch.tensor(0.2), atol=0.03, rtol=0)
+    # a masked-out tile does not count; with too few pixels in every tile the result is NaN
+    mask = torch.ones_like(ref, dtype=torch.bool)
+    mask[..., :, 96:] = False  # the still column is out: every counted tile is shifted
+    assert tile_shift(shifted, ref, mask) == pytest.approx(0.2, abs=1e-6)
+    assert torch.isnan(tile_shift(ref, ref, torch.zeros_like(mask)))
+
+
+def test_tile_shift_bad_input():
+    x = torch.zeros(1, 1, 64, 64)
+    with pytest.raises(ShapeError, match="reference"):
+        tile_shift(x, torch.zeros(1, 1, 64, 32))
+    with pytest.raises(ShapeError, match="mask"):
+        tile_shift(x, x, torch.ones(1, 1, 32, 64, dtype=torch.bool))
+    with pytest.raises(ShapeError, match="tile"):
+        tile_shift(torch.zeros(1, 1, 16, 64), torch.zeros(1, 1, 16, 64))
+    with pytest.raises(ValueRangeError, match="min_share"):
+        tile_shift(x, x, min_share=0.0)
+    with pytest.raises(ValueRangeError, match="tile"):
+        tile_shift(x, x, tile=0)

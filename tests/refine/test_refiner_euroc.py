@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from egorefine.data import load_euroc
-from egorefine.metrics import rotation_error_deg, translation_error
-from egorefine.refine import EgoMotionRefiner
+from egorefine.metrics import rotation_error_deg, tile_shift, translation_error
+from egorefine.refine import EgoMotionRefiner, predict_disparity
 
 
-def test_static_camera_does_not_drift(euroc_root):
-    seq = load_euroc(euroc_root)
-    assert len(seq.left) == 40
+def _run(seq, **options):
     K, b = seq.K[None], torch.tensor([seq.baseline])
-    refiner = EgoMotionRefiner(max_disparity=64, verify_every=5)  # defaults: paper fusion, exact motion
+    refiner = EgoMotionRefiner(max_disparity=64, verify_every=5, **options)
     state, disparity, valid, motion = None, [], [], []
     for t in range(len(seq.left)):
         out, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
@@ -21,12 +20,40 @@ def test_static_camera_does_not_drift(euroc_root):
         valid.append(out.valid)
         motion.append(out.motion)
         assert out.motion_ok.all() and torch.isfinite(out.disparity).all()
-    d, v, m = torch.cat(disparity), torch.cat(valid), torch.cat(motion)
+    return torch.cat(disparity), torch.cat(valid), torch.cat(motion)
+
+
+def _first_map_moved(d, v, m, seq):
+    """d_0 moved to every frame by the accumulated estimated motion, and the pixels to compare there."""
+    moved = [m[0]]
+    for step in m[1:]:
+        moved.append(step @ moved[-1])
+    T = len(d)
+    K, b = seq.K[None].expand(T, 3, 3), torch.full((T,), seq.baseline)
+    w = predict_disparity(d[:1].expand(T, -1, -1, -1).contiguous(), torch.stack(moved), K, b,
+                          valid=v[:1].expand(T, -1, -1, -1).contiguous(), fill_holes=False)
+    return w.disparity, w.valid & v & (w.disparity > 1.0)
+
+
+@pytest.mark.parametrize("fusion", ["paper", "kalman"])
+def test_static_camera_does_not_drift(euroc_root, fusion):
+    """Drift against the first map moved by the estimated motion, per 32 px tile (the shift a region shares; d_0's
+    per-pixel noise averages away) under 0.05 px on every frame, both fusions; per pixel too in paper mode, whose
+    map stays near d_0 (Kalman's converges to the mean of the measurements, which differs from d_0 per pixel by
+    d_0's own noise: benchmarks/euroc_static.py)."""
+    seq = load_euroc(euroc_root)
+    assert len(seq.left) == 40
+    d, v, m = _run(seq, fusion=fusion)
     # Stable pixels: valid on every frame, with a real disparity (> 1 px) on the first.
     stable = v.all(0) & (d[0] > 1.0)
-    assert stable.float().mean() > 0.5
-    drift = torch.stack([(d[t] - d[0]).abs()[stable].median() for t in range(len(d))])
-    assert drift.max() < 0.1, f"median |d_t - d_0| reached {drift.max():.3f} px"
+    assert stable.float().mean() > (0.5 if fusion == "paper" else 0.4)
+    ref, ok = _first_map_moved(d, v, m, seq)
+    assert ok[-1].float().mean() > 0.3
+    tile = torch.stack([tile_shift(d[t : t + 1], ref[t : t + 1], ok[t : t + 1]) for t in range(len(d))])
+    assert tile.max() < 0.05, f"{fusion}: a tile's median drift reached {tile.max():.3f} px"
+    if fusion == "paper":
+        pixel = torch.stack([(d[t] - ref[t]).abs()[ok[t]].median() for t in range(len(d))])
+        assert pixel.max() < 0.05, f"median |d_t - W_t(d_0)| reached {pixel.max():.3f} px"
     # The ground truth moves < 0.6 mm and a few hundredths of a degree per frame; the estimate must agree.
     gt = torch.linalg.inv(seq.poses[1:]) @ seq.poses[:-1]
     assert translation_error(m[1:], gt).max() < 2e-3
