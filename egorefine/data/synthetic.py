@@ -42,6 +42,16 @@ class RigPreset:
         texel: metres per texel of the surface texture at level 0.
         far: how far the scene extends beyond the end of the trajectory, metres.
         scene: the default scene.
+
+    :data:`PRESETS` holds the rigs :func:`render_sequence` renders with; its ``height``, ``width``, ``focal`` and
+    ``baseline`` arguments override a preset's (the focal length follows the width), the rest set the world.
+
+    Example:
+        >>> rig = PRESETS["paper"]
+        >>> (rig.height, rig.width), rig.focal, rig.baseline, rig.scene
+        ((480, 640), 398.0, 0.08, 'corridor')
+        >>> round(rig.focal * rig.baseline / 2.0, 2)  # disparity of a surface 2 m away, px (d = f B / Z)
+        15.92
     """
 
     height: int
@@ -98,6 +108,16 @@ class StereoSequence(SequenceMixin):
         fps: frames per second.
         exposure: ``(T, 2)`` linear gain of the (left, right) camera at each frame, relative to an ideal camera
             (the camera's gain times the exposure drift; ones for ideal imaging and for loaded sequences).
+
+    :func:`render_sequence` builds one; ``len(seq)`` is ``T``, :meth:`batch` hands frames to the stages and
+    ``seq.to(device, dtype)`` moves it.
+
+    Example:
+        >>> seq = render_sequence(num_frames=2, height=24, width=32, imaging="ideal")
+        >>> len(seq), seq.left.shape, seq.disparity.shape, seq.motions.shape, seq.K.shape
+        (2, torch.Size([2, 1, 24, 32]), torch.Size([2, 1, 24, 32]), torch.Size([2, 4, 4]), torch.Size([3, 3]))
+        >>> torch.allclose(seq.disparity * seq.depth, seq.K[0, 0] * seq.baseline)  # d = f B / Z
+        True
     """
 
     left: torch.Tensor
