@@ -115,6 +115,15 @@ class Prediction(NamedTuple):
         hole: bool, True where no valid source point landed (before filling).
         valid: bool, ``~hole``: True only where real values landed.
         confidence: in ``[0, 1]``; ``1 / (1 + variance)`` where valid, 0 on holes.
+
+    Example:
+        >>> from egorefine.geometry import make_intrinsics
+        >>> pred = predict_disparity(torch.full((1, 1, 6, 8), 4.0), torch.eye(4)[None], make_intrinsics(10.0, 4.0, 3.0),
+        ...                          torch.tensor([1.0]))  # no motion: every pixel lands where it was
+        >>> pred.disparity.shape, bool(pred.hole.any()), bool(pred.valid.all())
+        (torch.Size([1, 1, 6, 8]), False, True)
+        >>> round(pred.confidence[0, 0, 0, 0].item(), 4)  # 1 / (1 + process_noise)
+        0.9901
     """
 
     disparity: torch.Tensor
