@@ -115,6 +115,16 @@ def save_maps_figure(
 
     Returns:
         ``path``.
+
+    Example:
+        >>> import tempfile
+        >>> truth = torch.linspace(2.0, 6.0, 32).expand(24, 32)
+        >>> refined = truth + 0.1
+        >>> refined[:4] = float("nan")  # no value: drawn grey
+        >>> path = save_maps_figure(Path(tempfile.mkdtemp()) / "maps.png", torch.rand(24, 32), {"refined": refined},
+        ...                         truth=truth, title="one frame")
+        >>> path.name, cv2.imread(str(path)).shape  # two rows (maps, errors) of three panels
+        ('maps.png', (638, 1188, 3))
     """
     plt = _pyplot()
     panels = dict(maps) if truth is None else {"truth": truth, **maps}
@@ -148,6 +158,17 @@ def save_trajectory_figure(path: str | Path, trajectories: dict[str, torch.Tenso
 
     Returns:
         ``path``.
+
+    Example:
+        >>> import tempfile
+        >>> truth = torch.eye(4).repeat(5, 1, 1)
+        >>> truth[:, 2, 3] = torch.arange(5.0) * 0.1  # 10 cm forward per frame
+        >>> estimated = truth.clone()
+        >>> estimated[:, 0, 3] = 0.01  # 1 cm to the side
+        >>> path = save_trajectory_figure(Path(tempfile.mkdtemp()) / "trajectory.png",
+        ...                               {"estimated": estimated, "truth": truth})
+        >>> path.name, cv2.imread(str(path)).shape
+        ('trajectory.png', (550, 605, 3))
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(5.5, 5), constrained_layout=True)
@@ -186,6 +207,14 @@ def save_row_figure(
 
     Returns:
         ``path``.
+
+    Example:
+        >>> import tempfile
+        >>> truth = torch.linspace(2.0, 6.0, 32).expand(24, 32)
+        >>> stereo = truth.round()  # integer disparities: a staircase along the row
+        >>> path = save_row_figure(Path(tempfile.mkdtemp()) / "row.png", 12, {"truth": truth, "stereo": stereo})
+        >>> path.name, cv2.imread(str(path)).shape  # the curves above, one map per method below
+        ('row.png', (770, 880, 3))
     """
     plt = _pyplot()
     maps = curves if maps is None else maps

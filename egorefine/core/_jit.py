@@ -1,5 +1,5 @@
 """Optional numba compilation for the CPU inference paths (egorefine.stereo._sgm_numba,
-egorefine.refine._predict_numba).
+egorefine.refine._splat_numba, egorefine.refine._predict_numba and the other ``_*_numba`` modules).
 
 numba is a dependency, but the package stays importable without it: ``AVAILABLE`` is then False
 and callers take their torch path (which is also the reference for GPU tensors and autograd).

@@ -93,8 +93,28 @@ class StateError(EgorefineError, ValueError):
 
 class DataError(EgorefineError, ValueError):
     """A recording, image or calibration file is malformed: a frame that does not decode, a calibration that does
-    not parse or lacks a field, cameras that disagree (frame counts, image sizes)."""
+    not parse or lacks a field, cameras that disagree (frame counts, image sizes).
+
+    Example:
+        >>> import pathlib, tempfile
+        >>> from egorefine.data import read_euroc_sensor
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "sensor.yaml"
+        >>> _ = path.write_text("intrinsics: [458.6, 457.3, 367.2, 248.4]\\n")  # no T_BS block
+        >>> read_euroc_sensor(path)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.DataError: path: no T_BS block in '...sensor.yaml'
+    """
 
 
 class MissingDataError(DataError, FileNotFoundError):
-    """A file or folder that a data layout needs is absent."""
+    """A file or folder that a data layout needs is absent.
+
+    Example:
+        >>> from egorefine.data import read_grey
+        >>> try:
+        ...     read_grey("no/such/frame.png")
+        ... except FileNotFoundError as err:  # a MissingDataError is a FileNotFoundError too
+        ...     type(err).__name__
+        'MissingDataError'
+    """

@@ -46,6 +46,16 @@ class EurocSequence(SequenceMixin):
         poses: ``(T, 4, 4)`` ``world_T_camera`` of the rectified left camera (raw cam0 when not rectified); None
             for a sequence without ground truth.
         timestamps: ``(T,)`` int64 nanoseconds.
+
+    :func:`load_euroc` builds one from a EuRoC folder; ``len(seq)`` is ``T``, ``seq.to(device, dtype)`` moves it.
+
+    Example:
+        >>> poses = torch.eye(4).repeat(2, 1, 1)
+        >>> poses[1, 2, 3] = 0.05  # the camera moved 5 cm forward
+        >>> seq = EurocSequence(left=torch.zeros(2, 1, 24, 32), right=torch.zeros(2, 1, 24, 32), K=torch.eye(3),
+        ...                     baseline=0.11, poses=poses, timestamps=torch.tensor([0, 50_000_000]))
+        >>> len(seq), seq.motions.shape, round(seq.motions[1, 2, 3].item(), 6)  # a still point comes 5 cm closer
+        (2, torch.Size([2, 4, 4]), -0.05)
     """
 
     left: torch.Tensor
@@ -251,6 +261,21 @@ def load_euroc(
         MissingDataError: ``root`` is not in the ASL layout, or a listed image is absent.
         DataError: a sensor.yaml or image that does not parse; no synchronised frames.
         ValueRangeError: ``max_frames < 1``.
+
+    Example:
+        >>> import tempfile, pathlib, cv2
+        >>> root = pathlib.Path(tempfile.mkdtemp())
+        >>> for cam, x in (("cam0", 0.0), ("cam1", 0.1)):  # cam1 10 cm right of cam0, both without distortion
+        ...     (root / "mav0" / cam / "data").mkdir(parents=True)
+        ...     _ = (root / "mav0" / cam / "sensor.yaml").write_text(
+        ...         f"T_BS:\\n  rows: 4\\n  data: [1, 0, 0, {x}, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\\n"
+        ...         "intrinsics: [40, 40, 16, 12]\\ndistortion_coefficients: [0, 0, 0, 0]\\nresolution: [32, 24]\\n")
+        ...     _ = (root / "mav0" / cam / "data.csv").write_text("#timestamp,filename\\n0,0.png\\n50000000,1.png\\n")
+        ...     for name in ("0.png", "1.png"):
+        ...         _ = cv2.imwrite(str(root / "mav0" / cam / "data" / name), np.zeros((24, 32), np.uint8))
+        >>> seq = load_euroc(root)
+        >>> seq.left.shape, seq.K.shape, round(seq.baseline, 6), seq.timestamps.tolist(), seq.poses is None
+        (torch.Size([2, 1, 24, 32]), torch.Size([3, 3]), 0.1, [0, 50000000], True)
     """
     index = _index_euroc(Path(root), max_frames)
     calib = index.calib

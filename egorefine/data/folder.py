@@ -72,6 +72,17 @@ class ImageFolderSequence:
     Raises:
         FileNotFoundError: a folder does not exist.
         ValueRangeError: no frames, or the folders hold different numbers of frames.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> root = pathlib.Path(tempfile.mkdtemp())
+        >>> for side in ("left", "right"):
+        ...     (root / side).mkdir()
+        ...     for t in range(3):
+        ...         _ = cv2.imwrite(str(root / side / f"{t:06d}.png"), np.zeros((24, 32), np.uint8))
+        >>> seq = ImageFolderSequence(root / "left", root / "right")
+        >>> len(seq), seq[0][0].shape, seq[-1][1].shape
+        (3, torch.Size([1, 1, 24, 32]), torch.Size([1, 1, 24, 32]))
     """
 
     def __init__(self, left_dir: str | os.PathLike, right_dir: str | os.PathLike, pattern: str = "*.png",

@@ -87,6 +87,17 @@ class StereoRecording:
     Raises (on indexing):
         MissingDataError: an image file has gone.
         DataError: a file that does not decode, or a frame whose size differs from the calibration's.
+
+    Example:
+        >>> import tempfile, pathlib, cv2
+        >>> folder = pathlib.Path(tempfile.mkdtemp())
+        >>> files = [folder / "left.png", folder / "right.png"]
+        >>> for f in files:
+        ...     _ = cv2.imwrite(str(f), np.zeros((24, 32), np.uint8))
+        >>> K = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 12.0], [0.0, 0.0, 1.0]])
+        >>> rec = StereoRecording(files[:1], files[1:], K, 0.1, (24, 32), ["000000"])  # rectified already
+        >>> len(rec), rec.rectified_input, rec[0][0].shape, rec[0][1].shape
+        (1, True, torch.Size([1, 1, 24, 32]), torch.Size([1, 1, 24, 32]))
     """
 
     def __init__(self, left_files: list[Path], right_files: list[Path], K: torch.Tensor, baseline: float,

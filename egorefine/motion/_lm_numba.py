@@ -5,7 +5,7 @@ arithmetic is a few thousand multiply-adds per feature, so on the CPU the launch
 (about half of the exact solve's). Here one loop over the features per step does the reprojection
 with its Jacobians, the IRLS normal equations and the robust cost, and the 6x6 damped solve and
 the SE(3) retraction are unrolled small-matrix code. The steps, acceptance rule and damping
-schedule are the torch version's (:func:`egorefine.motion.solve._levenberg_marquardt`), computed
+schedule are the torch version's (:func:`egorefine.motion._lm._levenberg_marquardt`), computed
 in float64 whatever the input dtype; results agree with the torch path to its float rounding
 (a test compares them), not bit for bit.
 
@@ -53,7 +53,7 @@ if AVAILABLE:
 
     @_jit
     def _reproject(M, rays, target, cam, eps, tiny, S):
-        """solve._reprojection for one item: the packed state ``S (N, 16)`` of the motion ``M (4, 4)``."""
+        """_lm._reprojection for one item: the packed state ``S (N, 16)`` of the motion ``M (4, 4)``."""
         fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
         for i in range(rays.shape[0]):
             q = rays[i]
@@ -105,7 +105,7 @@ if AVAILABLE:
 
     @_jit
     def _scale(H, eps, tiny, s):
-        """solve._jacobi_scaled: the scales ``s`` (unit diagonal of ``S H S``, the diagonal floored)."""
+        """_linear._jacobi_scaled: the scales ``s`` (unit diagonal of ``S H S``, the diagonal floored)."""
         top = H[0, 0]
         for a in range(1, 6):
             top = max(top, H[a, a])
@@ -115,7 +115,7 @@ if AVAILABLE:
 
     @_jit
     def _damped_step(H, g, lam, eps, tiny, delta):
-        """solve._solve_normal(H, -g, lam): Jacobi scaling, ``+ lam I``, Cholesky, two triangular solves.
+        """_linear._solve_normal(H, -g, lam): Jacobi scaling, ``+ lam I``, Cholesky, two triangular solves.
         A matrix that is not positive definite gives NaN (the step is then rejected, as in the torch path)."""
         s = np.empty(6)
         _scale(H, eps, tiny, s)
@@ -151,7 +151,7 @@ if AVAILABLE:
 
     @_jit
     def _twist_exp(delta, E):
-        """solve._twist_exp: exp of the 4x4 twist matrix by 3 halvings and a degree-8 Taylor series (Horner)."""
+        """_lm._twist_exp: exp of the 4x4 twist matrix by 3 halvings and a degree-8 Taylor series (Horner)."""
         X = np.zeros((4, 4))
         f = 0.125  # 0.5 ** 3 halvings
         X[0, 3], X[1, 3], X[2, 3] = delta[0] * f, delta[1] * f, delta[2] * f
@@ -222,7 +222,7 @@ if AVAILABLE:
 def two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor,
                  gate_huber: torch.Tensor, gate_late: torch.Tensor, *, loss: str, first: int, second: int,
                  scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`egorefine.motion.solve._two_stage_lm` for CPU tensors without gradient, compiled.
+    """:func:`egorefine.motion._lm._two_stage_lm` for CPU tensors without gradient, compiled.
 
     Args:
         motion: ``(B, 4, 4)`` start; rays ``(B, N, 4)``; target ``(B, N, 2)``; K ``(B, 3, 3)``;

@@ -152,7 +152,7 @@ if AVAILABLE:
 
     @_jit
     def _fit(R, w, damping, eps, tiny, x):
-        """solve._linear_fit: eq. (3) by the normal equations, Jacobi-scaled and damped, solved into ``x``."""
+        """_linear._linear_fit: eq. (3) by the normal equations, Jacobi-scaled and damped, solved into ``x``."""
         H = np.empty((6, 6))
         g = np.empty(6)
         _normal(R, w, H, g)
@@ -176,7 +176,7 @@ if AVAILABLE:
 
     @_jit
     def _ransac(R, w, u, rounded, threshold, refits, damping, eps, tiny, x, inl):
-        """solve._ransac for one item: MSAC over the minimal sets drawn by ``u (hyp, 3)``, then the refits.
+        """_linear._ransac for one item: MSAC over the minimal sets drawn by ``u (hyp, 3)``, then the refits.
 
         ``rounded`` is a 2-element array of the input dtype, to round as the torch path rounds: the index
         ``floor(u * n)`` of a draw, and each MSAC cost before it is compared (minimal sets that fit exactly tie in
@@ -373,7 +373,7 @@ if AVAILABLE:
                     if wo[i] > 0:
                         count += 1
                     wsum += wo[i]
-                    sq += wo[i] * (r2[i] + tiny)  # solve._norm2 squared
+                    sq += wo[i] * (r2[i] + tiny)  # _linear._norm2 squared
                 tw[:] = x
             rms_b = math.sqrt(sq / max(wsum, eps))
             ev = np.linalg.eigvalsh(Hs)
@@ -448,7 +448,7 @@ def solve_compiled(
     """:func:`~egorefine.motion.solve_ego_motion` for CPU float32/float64 tensors without gradient, compiled.
 
     Shapes, dtypes and settings must have been checked by the caller (solve.solve_ego_motion); ``refits`` is the
-    number of RANSAC fits on the inliers (solve._REFITS) and ``max_spread`` solve._MAX_DISPARITY_SPREAD, the largest
+    number of RANSAC fits on the inliers (_linear._REFITS) and ``max_spread`` solve._MAX_DISPARITY_SPREAD, the largest
     disparity difference among the 4 pixels of a usable sample.
 
     Returns:

@@ -40,6 +40,9 @@ The normal equations are Jacobi-scaled (unit diagonal) and damped by a small mul
 the identity (the dtype's epsilon) before a batched Cholesky factorisation, so every
 solve is finite; the flag comes from the reciprocal condition number of the scaled
 matrix (its extreme eigenvalues), which is invariant to the units of the unknowns.
+
+This module checks the input, samples the depth of each feature and runs the chosen method; the linear solves and
+RANSAC are in :mod:`egorefine.motion._linear`, the Levenberg-Marquardt refinement in :mod:`egorefine.motion._lm`.
 """
 
 from __future__ import annotations
@@ -65,8 +68,18 @@ from ..core import (
 )
 from ..geometry import motion_to_twist, twist_to_motion
 from . import _lm_numba, _solve_numba
+from ._linear import (
+    _REFITS,
+    _jacobi_scaled,
+    _linear_fit,
+    _linear_residual,
+    _normal_equations,
+    _ransac,
+    _well_conditioned,
+)
+from ._lm import _FRONT, _RN, _se3_generators, _twist_exp, _two_stage_lm
 from .field import motion_field_jacobian
-from .robust import LOSSES, robust_loss, robust_weight
+from .robust import LOSSES, robust_weight
 
 __all__ = ["EgoMotion", "EgoMotionSolver", "solve_ego_motion", "METHODS"]
 
@@ -217,253 +230,8 @@ def _disparity_at(
     return torch.where(usable, sampled, torch.zeros_like(sampled)), usable
 
 
-# --------------------------------------------------------------------------- linear algebra
-
-
-def _solve_normal(H: torch.Tensor, g: torch.Tensor, damping: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Solve ``(H + damping * diag(H)) x = g`` for SPD ``H (..., 6, 6)``; returns ``x`` and the scaled ``H``.
-
-    Jacobi scaling makes the diagonal 1, so a damping relative to it is unit-free
-    (Marquardt's form); a tiny floor on the diagonal keeps unobservable unknowns (an
-    all-zero column, e.g. translation from points at infinity) at exactly zero instead
-    of dividing by zero.
-    """
-    Hs, s = _jacobi_scaled(H)
-    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
-    if isinstance(damping, torch.Tensor):
-        damping = damping[..., None, None]
-    L, _ = torch.linalg.cholesky_ex(Hs + damping * eye)
-    # two triangular solves rather than cholesky_solve: for batches on CUDA that one runs MAGMA, which allocates
-    # memory on every call, so a CUDA graph cannot record it (cuBLAS's batched triangular solve it can)
-    y = torch.linalg.solve_triangular(L, (g * s)[..., None], upper=False)
-    x = torch.linalg.solve_triangular(L.mT, y, upper=True)[..., 0] * s
-    return x, Hs
-
-
-def _jacobi_scaled(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``S H S`` with unit diagonal and the scales ``s`` (``S = diag(s)``); the diagonal is floored."""
-    diag = H.diagonal(dim1=-2, dim2=-1)
-    floor = eps_like(H) * diag.amax(-1, keepdim=True).detach() + torch.finfo(H.dtype).tiny
-    s = diag.clamp_min(floor).rsqrt()
-    return H * s[..., :, None] * s[..., None, :], s
-
-
-def _well_conditioned(Hs: torch.Tensor, rcond: float) -> torch.Tensor:
-    """``(B,)`` bool: the scaled normal matrix has reciprocal condition number above ``rcond``."""
-    ev = torch.linalg.eigvalsh(Hs.detach())
-    ok = ev[..., 0] > rcond * ev[..., -1].clamp_min(torch.finfo(Hs.dtype).tiny)
-    return ok & torch.isfinite(ev).all(-1)
-
-
-def _normal_equations(A: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``A^T W A`` and ``A^T W b`` of stacked rows ``A (B, M, 6)``, ``b (B, M)``, ``w (B, M)``.
-
-    One product of ``[A | b]`` with itself: a separate matrix-vector product for ``A^T W b`` is computed by
-    another BLAS kernel for a batch of one than for larger batches, so an item's result would depend on its batch.
-    """
-    Ab = torch.cat([A, b[..., None]], dim=-1)
-    G = (Ab * w[..., None]).transpose(-1, -2) @ Ab
-    return G[..., :-1, :-1], G[..., :-1, -1]
-
-
-def _linear_fit(A: torch.Tensor, b: torch.Tensor, w: torch.Tensor, damping: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Equation (3) by the normal equations: ``A (B, 2N, 6)``, ``b (B, 2N)``, feature weights ``w (B, N)``."""
-    H, g = _normal_equations(A, b, w.repeat_interleave(2, dim=1))
-    return _solve_normal(H, g, damping)
-
-
-def _linear_residual(A: torch.Tensor, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Residual norms ``(B, N)`` in pixels of the linear model: ``|A x - b|`` per feature."""
-    r = (A * x[:, None, :]).sum(-1) - b  # (not a matrix-vector product: see _normal_equations)
-    return _norm2(r.view(r.shape[0], -1, 2))
-
-
-def _norm2(r: torch.Tensor) -> torch.Tensor:
-    """Norm over the last dim (size 2) with a finite gradient at zero."""
-    return ((r * r).sum(-1) + torch.finfo(r.dtype).tiny).sqrt()
-
-
-# --------------------------------------------------------------------------- robust (RANSAC)
-
-
-def _ransac(
-    A: torch.Tensor,
-    b: torch.Tensor,
-    w: torch.Tensor,
-    hypotheses: int,
-    threshold: float,
-    seed: int,
-    damping: float,
-    refits: int = 2,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched MSAC over minimal sets of 3 features, then ``refits`` refits on the inliers.
-
-    Returns the twist ``(B, 6)`` and the inlier weights ``(B, N)`` (input weight on inliers).
-    """
-    B, M, _ = A.shape
-    N = M // 2
-    valid = w > 0
-    n_valid = valid.sum(1)
-    # Valid features first (stable, so the order does not depend on the rest of the batch).
-    order = torch.argsort(valid.to(torch.uint8), dim=1, descending=True, stable=True)
-    gen = torch.Generator(device=A.device).manual_seed(seed)
-    u = torch.rand(hypotheses, 3, generator=gen, device=A.device, dtype=A.dtype)  # shared by all items
-    j = (u[None] * n_valid[:, None, None].to(A.dtype)).long()
-    j = torch.minimum(j, (n_valid - 1).clamp_min(0)[:, None, None])
-    idx = order.gather(1, j.view(B, -1))  # (B, hyp*3)
-    A12 = A.view(B, N, 12).gather(1, idx[..., None].expand(-1, -1, 12)).view(B, hypotheses, 6, 6)
-    b6 = b.view(B, N, 2).gather(1, idx[..., None].expand(-1, -1, 2)).reshape(B, hypotheses, 6)
-    H, g = _normal_equations(A12, b6, torch.ones_like(b6))
-    X, _ = _solve_normal(H, g, damping)  # (B, hyp, 6): every hypothesis of every item in one solve
-    r = (A @ X.transpose(1, 2)) - b[..., None]  # (B, 2N, hyp)
-    r2 = (r * r).view(B, N, 2, hypotheses).sum(2)  # (B, N, hyp)
-    cost = (w[..., None] * r2.clamp(max=threshold**2)).sum(1)  # MSAC: truncated squared error
-    best = cost.argmin(1)  # (B,)
-    inl = valid & (r2.gather(2, best[:, None, None].expand(-1, N, 1))[..., 0] < threshold**2)
-    for _ in range(refits - 1):
-        x, _ = _linear_fit(A, b, w * inl, damping)
-        inl = valid & (_linear_residual(A, b, x) < threshold)
-    x, _ = _linear_fit(A, b, w * inl, damping)
-    return x, w * inl
-
-
-# RANSAC's fits on the inliers: "exact" refines anyway (and re-admits inliers with its own kernel), one is enough there
-_REFITS = {"robust": 3, "exact": 1}
-
-
-# --------------------------------------------------------------------------- exact (SE(3) LM)
-
-
-# Per-feature state of the LM, packed in one (B, N, 16) tensor so that accepting a step is a
-# single torch.where: [du/d(delta) (6), r_u, dv/d(delta) (6), r_v, |r|, in front].
-_RN, _FRONT = 14, 15
-
-
-def _reprojection(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Reprojection residuals of frame ``t-1``'s points in frame ``t`` and their Jacobians, packed ``(B, N, 16)``.
-
-    ``rays (B, N, 4) = (x_n, y_n, 1, 1/Z)``: the point of frame ``t-1`` is ``Z * (x_n, y_n, 1)``;
-    projection is invariant to scale, so ``Q = (R P + t) / Z = R (x_n, y_n, 1) + t / Z`` is
-    projected instead (finite for points at infinity, ``1/Z = 0``). For a left increment
-    ``exp(delta) [R | t]`` with ``delta = (rho, phi)``: ``dQ = rho / Z + phi x Q``. A point
-    that ends up behind the camera gets residual norm 1e3 px (a far outlier) and front 0.
-    """
-    Q = rays @ motion[:, :3, :].transpose(1, 2)  # (B, N, 3)
-    X, Y, Z = Q.unbind(-1)
-    front = Z > eps_like(Q)
-    a = torch.where(front, Z, torch.ones_like(Z)).reciprocal()  # clamp: no division by Z <= 0
-    xq, yq = X * a, Y * a
-    ar = a * rays[..., 3]
-    fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]
-    ru = fx * xq + K[:, 0, 2, None] - target[..., 0]
-    rv = fy * yq + K[:, 1, 2, None] - target[..., 1]
-    rn = torch.where(front, (ru * ru + rv * rv + torch.finfo(Q.dtype).tiny).sqrt(), torch.full_like(ru, 1e3))
-    zero = torch.zeros_like(xq)
-    fxe, fye = fx.expand_as(xq), fy.expand_as(xq)
-    xy = xq * yq
-    return torch.stack(
-        [fxe * ar, zero, -fxe * xq * ar, -fxe * xy, fxe * (1 + xq * xq), -fxe * yq, ru,
-         zero, fye * ar, -fye * yq * ar, -fye * (1 + yq * yq), fye * xy, fye * xq, rv,
-         rn, front.to(Q.dtype)], dim=-1,
-    )  # fmt: skip
-
-
-def _irls_system(S: torch.Tensor, gate: torch.Tensor, loss: str, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weighted normal equations ``(J^T W J, J^T W r)`` from the packed state, one matmul of ``[J | r]``."""
-    B, N, _ = S.shape
-    omega = gate * S[..., _FRONT] * robust_weight(S[..., _RN], loss, scale)  # IRLS weights
-    Jr = S[..., :14].reshape(B, 2 * N, 7)
-    G = (Jr * omega.repeat_interleave(2, dim=1)[..., None]).transpose(1, 2) @ Jr  # (B, 7, 7)
-    return G[:, :6, :6], G[:, :6, 6]
-
-
-_GENERATORS: dict[tuple[torch.device, torch.dtype], torch.Tensor] = {}
-
-
-def _se3_generators(like: torch.Tensor) -> torch.Tensor:
-    """The 6 generators of se(3) as ``(6, 16)``: ``delta @ G`` is the 4x4 twist matrix of ``delta = (rho, phi)``.
-
-    Built once per device and dtype (a CUDA graph may not record the host-to-device copies of building it).
-    """
-    key = (like.device, like.dtype)
-    if key not in _GENERATORS:
-        G = torch.zeros(6, 4, 4, dtype=like.dtype)
-        G[0, 0, 3] = G[1, 1, 3] = G[2, 2, 3] = 1.0
-        G[3, 2, 1], G[3, 1, 2] = 1.0, -1.0
-        G[4, 0, 2], G[4, 2, 0] = 1.0, -1.0
-        G[5, 1, 0], G[5, 0, 1] = 1.0, -1.0
-        _GENERATORS[key] = G.view(6, 16).to(like.device)
-    return _GENERATORS[key]
-
-
-def _twist_exp(delta: torch.Tensor, G: torch.Tensor, halvings: int = 3, degree: int = 8) -> torch.Tensor:
-    """``exp`` of the 4x4 twist matrices of ``delta (B, 6)`` (``G`` from :func:`_se3_generators`): ``(B, 4, 4)``.
-
-    Scaling and squaring with a fixed Taylor degree, in batched matrix products only: the result of an item does
-    not depend on its batch (``torch.linalg.matrix_exp`` rounds differently for B = 1 and B = 2, which lets the
-    refiner's batch items drift apart over a few frames), and it is cheaper than ``matrix_exp`` for 4x4 matrices.
-    With ``|X| / 2^halvings <= 0.4`` (a rotation up to ~180 degrees) the truncation is below 1e-8; LM increments
-    are far smaller.
-    """
-    X = (delta @ G).view(-1, 4, 4) * (0.5**halvings)
-    eye = torch.eye(4, dtype=X.dtype, device=X.device).expand_as(X)
-    E = eye + X / degree  # Horner: I + X (I + X/2 (I + X/3 (...)))
-    for k in range(degree - 1, 0, -1):
-        E = torch.baddbmm(eye, X, E, alpha=1.0 / k)
-    for _ in range(halvings):
-        E = E @ E
-    return E
-
-
-def _levenberg_marquardt(
-    motion: torch.Tensor,
-    rays: torch.Tensor,
-    target: torch.Tensor,
-    K: torch.Tensor,
-    stages: list[tuple[torch.Tensor, str, int]],
-    scale: float,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """LM on SE(3) with per-item acceptance; ``stages`` = [(gate (B,N), loss, iterations), ...].
-
-    Returns the motion, the packed per-feature state ``(B, N, 16)`` and the scaled normal matrix.
-    """
-    B = motion.shape[0]
-    lam = torch.full((B,), 1e-4, dtype=motion.dtype, device=motion.device)
-    S = _reprojection(motion, rays, target, K)
-    G = _se3_generators(motion)
-    for gate, loss, iters in stages:
-        cost = (gate * robust_loss(S[..., _RN], loss, scale)).sum(1)
-        for _ in range(iters):
-            # Jacobians -> weighted normal equations (IRLS) -> damped solve -> retraction.
-            H, g = _irls_system(S, gate, loss, scale)
-            delta, _ = _solve_normal(H, -g, lam)
-            # Left-multiplied increment exp(delta) (the same map as geometry.se3_exp).
-            trial = _twist_exp(delta, G) @ motion
-            S_new = _reprojection(trial, rays, target, K)
-            cost_new = (gate * robust_loss(S_new[..., _RN], loss, scale)).sum(1)
-            # Keep the step only where that item's robust cost drops; adapt its damping.
-            accept = (cost_new < cost) & torch.isfinite(cost_new)
-            motion = torch.where(accept[:, None, None], trial, motion)
-            S = torch.where(accept[:, None, None], S_new, S)
-            cost = torch.where(accept, cost_new, cost)
-            lam = torch.where(accept, lam * 0.2, lam * 5.0).clamp(1e-9, 1e6)
-    gate, loss, _ = stages[-1]
-    H, _ = _irls_system(S, gate, loss, scale)  # at the final state, for the quality flag
-    return motion, S, _jacobi_scaled(H)[0]
-
-
 # the dtypes the compiled LM and solve accept (they compute in float64)
 _KERNEL_DTYPES = (torch.float32, torch.float64)
-
-
-def _two_stage_lm(motion: torch.Tensor, rays: torch.Tensor, target: torch.Tensor, K: torch.Tensor,
-                  gate_huber: torch.Tensor, gate_late: torch.Tensor, *, loss: str, first: int, second: int,
-                  scale: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The exact method's LM: ``first`` Huber iterations on ``gate_huber``, then ``second`` with ``loss``."""
-    return _levenberg_marquardt(motion, rays, target, K, [(gate_huber, "huber", first), (gate_late, loss, second)],
-                                scale)
-
-
 
 
 # --------------------------------------------------------------------------- entry point

@@ -3,7 +3,7 @@
 Private: the pixel-homogeneous motion of a frame step, the padded flat layout that the scatters and gathers share,
 the hard splat's start (coverage test, z-buffer, check) and its inverse-warp refinement, and the coverage splat of
 both modes. :mod:`egorefine.refine.predict` holds what they mean (its module docstring) and the public API;
-:mod:`egorefine.refine._predict_numba` repeats the hard steps compiled.
+:mod:`egorefine.refine._splat_numba` repeats the hard steps compiled.
 """
 
 from __future__ import annotations

@@ -66,6 +66,13 @@ class Correction(NamedTuple):
             without a valid measurement only where their variance is within it).
         outlier_count: consecutive verifications at which the pixel was gated out (dtype of the
             ``outlier_count`` passed in, else of ``predicted``); 0 after a fused or reset pixel.
+
+    Example:
+        >>> cor = correct_disparity(torch.full((1, 1, 2, 3), 4.0), torch.full((1, 1, 2, 3), 5.0), None)
+        >>> cor.disparity.shape, cor.variance.shape, bool(cor.valid.all())
+        (torch.Size([1, 1, 2, 3]), torch.Size([1, 1, 2, 3]), True)
+        >>> round(cor.disparity[0, 0, 0, 0].item(), 4), cor.outlier_count[0, 0, 0, 0].item()  # 4 + 0.4 * 1: gated
+        (4.4, 1.0)
     """
 
     disparity: torch.Tensor

@@ -66,6 +66,15 @@ class Status(enum.IntFlag):
         MEASUREMENT_REJECTED: stereo failed wholesale; the prediction was kept.
         PREDICTION_RESET: some regions disagreed with stereo as a whole and took the measurement.
         EXPOSURE_JUMP: the mean brightness jumped between two frames.
+
+    The flags of one item combine with ``|``; a ``status`` tensor is tested bit by bit with ``&``.
+
+    Example:
+        >>> status = torch.tensor([0, int(Status.STEREO_FORCED | Status.MOTION_FAILED)])  # two items' status
+        >>> (status & Status.MOTION_FAILED).bool().tolist()
+        [False, True]
+        >>> Status.STEREO_FORCED in Status(int(status[1])), Status(2).name
+        (True, 'MOTION_FAILED')
     """
 
     OK = 0

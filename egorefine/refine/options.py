@@ -63,6 +63,14 @@ class StereoOptions:
         subpixel: the sub-pixel fit through the winner's neighbours (False: the paper's integer disparities).
         temperature: the soft-argmin's temperature in cost units (``differentiable=True``; None: the matcher's
             default for its cost).
+
+    Example:
+        >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
+        {'cost': 'census', 'aggregation': 'sgm'}
+        >>> StereoOptions(block_size=4)
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: block_size: expected a positive odd integer, got 4
     """
 
     min_disparity: int = 0
@@ -100,6 +108,15 @@ class TrackingOptions:
             frame at a few ms of tracking).
         min_tracks: detection re-runs when fewer live tracks remain (200).
         soft: the tracker's soft-argmax last step (None: with ``differentiable=True``).
+
+    Example:
+        >>> opts = TrackingOptions(max_features=64, min_tracks=16)  # a small image needs fewer features
+        >>> opts.max_features, opts.min_tracks, opts.soft
+        (64, 16, None)
+        >>> dataclasses.replace(opts, min_tracks=-1)
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: min_tracks: expected an integer >= 0, got -1
     """
 
     max_features: int = 500
@@ -124,6 +141,14 @@ class PredictionOptions:
             become valid, disocclusions stay holes.
         process_noise: Kalman mode, px^2 added to the carried variance per predicted frame (0.01: a tenth of a
             pixel of drift per frame, the size of a sub-pixel motion error).
+
+    Example:
+        >>> PredictionOptions(splat="soft", process_noise=0.04).process_noise  # a fifth of a pixel per frame
+        0.04
+        >>> PredictionOptions(splat="bilinear")  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: splat: ...
     """
 
     splat: str | None = None
@@ -151,6 +176,15 @@ class CorrectionOptions:
             variance is at most this (``0.25^2``: a standard deviation of half the paper's gate; None: always).
         gate_softness: logistic gates (px in paper mode, standard deviations in Kalman mode; None: hard, or 0.1
             with ``differentiable=True``).
+
+    Example:
+        >>> opts = CorrectionOptions(kalman_gate=2.0, reset_after=2)  # tolerate one outlier before a reset
+        >>> opts.gate, opts.gain, opts.kalman_gate, opts.reset_after
+        (0.5, 0.4, 2.0, 2)
+        >>> CorrectionOptions(gain=1.5)
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: gain: expected 0 < gain <= 1, got 1.5
     """
 
     gate: float = 0.5
@@ -194,6 +228,15 @@ class SearchOptions:
         max_hole_variance, hole_background_margin: a hole measurement is taken where its variance is at most
             ``max_hole_variance`` px^2 or it lies at most ``hole_background_margin`` px above the hole's
             background fill (an uncovered region shows the background; None: variance only).
+
+    Example:
+        >>> opts = SearchOptions(local_search=2, window="warped")  # 5 cost planes around each prediction
+        >>> opts.local_search, opts.block, opts.measure_holes
+        (2, 7, False)
+        >>> SearchOptions(local_search=1)
+        Traceback (most recent call last):
+        ...
+        egorefine.core.errors.ValueRangeError: local_search: expected 0 (off) or an integer >= 2, got 1
     """
 
     local_search: int = 0
@@ -223,6 +266,12 @@ class ScheduleOptions:
         adaptive: run stereo also where the prediction's valid share falls below ``min_coverage`` or its mean
             confidence below ``min_confidence`` (off: the paper's fixed schedule).
         min_coverage, min_confidence: the thresholds, in [0, 1].
+
+    Example:
+        >>> from egorefine.refine import EgoMotionRefiner
+        >>> refiner = EgoMotionRefiner(max_disparity=32, schedule=ScheduleOptions(adaptive=True, min_coverage=0.9))
+        >>> refiner.schedule.adaptive, refiner.schedule.min_coverage, refiner.schedule.min_confidence
+        (True, 0.9, 0.5)
     """
 
     adaptive: bool = False

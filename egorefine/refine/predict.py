@@ -50,9 +50,9 @@ steps (tests/refine/test_predict.py measures it); one step is the default. Refin
 disparity only; the variance stays the carried one.
 
 Speed: for float32 CPU maps that need no gradient, hard mode with refinement runs compiled
-(:mod:`egorefine.refine._predict_numba`, numba, where :func:`egorefine.core.use_compiled` allows it: the same
+(:mod:`egorefine.refine._splat_numba`, numba, where :func:`egorefine.core.use_compiled` allows it: the same
 formulas in three loops, decisions equal to
-this path's, values to rounding; about 0.35x this path's time at 640x480 on two threads). The torch
+this path's, values to rounding; faster than this path, docs/decisions.md has the timings). The torch
 path below is the reference for GPU tensors, float64 and autograd. It is written in pixel-homogeneous
 coordinates (one affine map per component over the grid), out-of-image points land in the margin of
 a padded flat layout instead of being masked, bilinear neighbours share one index through shifted
@@ -91,7 +91,7 @@ from ..core import (
 )
 from ..core.dispatch import needs_grad
 from ..core.errors import ValueRangeError
-from . import _predict_numba
+from . import _splat_numba
 from ._splat import (
     _affine_map,
     _big,
@@ -115,6 +115,15 @@ class Prediction(NamedTuple):
         hole: bool, True where no valid source point landed (before filling).
         valid: bool, ``~hole``: True only where real values landed.
         confidence: in ``[0, 1]``; ``1 / (1 + variance)`` where valid, 0 on holes.
+
+    Example:
+        >>> from egorefine.geometry import make_intrinsics
+        >>> pred = predict_disparity(torch.full((1, 1, 6, 8), 4.0), torch.eye(4)[None], make_intrinsics(10.0, 4.0, 3.0),
+        ...                          torch.tensor([1.0]))  # no motion: every pixel lands where it was
+        >>> pred.disparity.shape, bool(pred.hole.any()), bool(pred.valid.all())
+        (torch.Size([1, 1, 6, 8]), False, True)
+        >>> round(pred.confidence[0, 0, 0, 0].item(), 4)  # 1 / (1 + process_noise)
+        0.9901
     """
 
     disparity: torch.Tensor
@@ -339,8 +348,8 @@ def _predict(
     # Pixel-homogeneous form (see _pixel_motion); the grid enters as a column and a row vector.
     A, a, G, e = _pixel_motion(motion, K, baseline)
     if compiled:
-        # the same steps compiled (egorefine.refine._predict_numba): float32 CPU inference
-        out = _predict_numba.hard_splat(
+        # the same steps compiled (egorefine.refine._splat_numba): float32 CPU inference
+        out = _splat_numba.hard_splat(
             d.contiguous(), None if var is None else var.contiguous(),
             None if valid is None else valid[:, 0].contiguous(), A, a, G, e, surface_tolerance, refine_iterations,
             fill_holes, process_noise, hole_variance,

@@ -25,6 +25,17 @@ class SequenceResult(NamedTuple):
         motion_ok: ``(T, B)`` bool.
         num_tracks: ``(T, B)`` features tracked into each frame.
         status: ``(T, B)`` int64 :class:`~egorefine.refine.health.Status` bits of each frame.
+
+    Example:
+        >>> from egorefine.data import render_sequence
+        >>> from egorefine.refine import TrackingOptions
+        >>> seq = render_sequence(num_frames=3, height=40, width=56)
+        >>> res = refine_sequence(seq.left, seq.right, seq.K, seq.baseline, max_disparity=8,
+        ...                       tracking=TrackingOptions(max_features=64, min_tracks=16))
+        >>> res.motion.shape, res.motion_ok.shape, res.status.shape  # frame t of item b: res.motion[t, b]
+        (torch.Size([3, 1, 4, 4]), torch.Size([3, 1]), torch.Size([3, 1]))
+        >>> torch.equal(res.motion[0, 0], torch.eye(4)), res.stereo_ran.tolist()  # verify_every=5
+        (True, [True, False, False])
     """
 
     disparity: torch.Tensor
@@ -61,6 +72,15 @@ def refine_sequence(
 
     Returns:
         :class:`SequenceResult`.
+
+    Example:
+        >>> from egorefine.data import render_sequence
+        >>> from egorefine.refine import TrackingOptions
+        >>> seq = render_sequence(num_frames=3, height=40, width=56)
+        >>> res = refine_sequence(seq.left, seq.right, seq.K, seq.baseline, verify_every=2, max_disparity=8,
+        ...                       tracking=TrackingOptions(max_features=64, min_tracks=16))
+        >>> res.disparity.shape, res.valid.shape, res.stereo_ran.tolist()  # (T, B, 1, H, W); stereo on 0 and 2
+        (torch.Size([3, 1, 1, 40, 56]), torch.Size([3, 1, 1, 40, 56]), [True, False, True])
     """
     for name, t in (("lefts", lefts), ("rights", rights)):
         if not isinstance(t, torch.Tensor):

@@ -32,6 +32,19 @@ class RefinerState(NamedTuple):
         since_stereo: frames since stereo last ran (0 = it ran on ``frame``).
         pyramid: the tracker's image pyramid of ``image`` (levels of ``(B, 1, H_l, W_l)``), built once per frame
             and reused when tracking into the next one; None: built from ``image`` when needed.
+
+    Example:
+        >>> from egorefine.data import render_sequence
+        >>> from egorefine.refine import EgoMotionRefiner, TrackingOptions
+        >>> seq = render_sequence(num_frames=2, height=40, width=56)
+        >>> refiner = EgoMotionRefiner(max_disparity=8, tracking=TrackingOptions(max_features=64, min_tracks=16))
+        >>> K, b = seq.K[None], torch.tensor([seq.baseline])
+        >>> _, state = refiner(seq.left[:1], seq.right[:1], K, b)  # no state: a new sequence
+        >>> state.frame, state.disparity.shape, state.keypoints.shape, state.weights.shape
+        (0, torch.Size([1, 1, 40, 56]), torch.Size([1, 64, 2]), torch.Size([1, 64]))
+        >>> _, state = refiner(seq.left[1:], seq.right[1:], K, b, state)
+        >>> state.frame, state.since_stereo  # verify_every=5: no stereo on frame 1
+        (1, 1)
     """
 
     image: torch.Tensor
@@ -89,6 +102,17 @@ class RefinerOutput(NamedTuple):
         status: ``(B,)`` int64 bits of :class:`~egorefine.refine.health.Status`: what happened to each item on
             this frame (stereo forced, motion failed, scene change, measurement rejected, prediction reset, exposure
             jump); 0 on an ordinary frame.
+
+    Example:
+        >>> from egorefine.data import render_sequence
+        >>> from egorefine.refine import EgoMotionRefiner, TrackingOptions
+        >>> seq = render_sequence(num_frames=1, height=40, width=56)
+        >>> refiner = EgoMotionRefiner(max_disparity=8, tracking=TrackingOptions(max_features=64, min_tracks=16))
+        >>> out, _ = refiner(seq.left, seq.right, seq.K[None], torch.tensor([seq.baseline]))
+        >>> out.disparity.shape, out.valid.dtype, out.motion.shape, out.stereo_ran  # stereo runs on frame 0
+        (torch.Size([1, 1, 40, 56]), torch.bool, torch.Size([1, 4, 4]), True)
+        >>> out.motion_ok.tolist(), out.status.tolist()
+        ([True], [0])
     """
 
     disparity: torch.Tensor

@@ -462,7 +462,21 @@ def _volume(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
 
 
 def release_workspace() -> None:
-    """Free the work volumes that ``census_sgm_select`` keeps for the calling thread."""
+    """Free the work volumes that the compiled census + SGM path keeps for the calling thread.
+
+    Public as :func:`egorefine.stereo.release_sgm_workspace`. :func:`~egorefine.stereo.match_stereo` with
+    ``cost="census", aggregation="sgm"`` on float32 CPU images keeps its two volumes (about 6 bytes per pixel and
+    candidate disparity) for the next call of the same size; call this when a thread is done matching, to hand
+    the memory back. The next call allocates them anew.
+
+    Example:
+        >>> from egorefine.stereo import match_stereo, release_sgm_workspace
+        >>> left = torch.rand(1, 1, 24, 32)
+        >>> out = match_stereo(left, torch.roll(left, -2, dims=3), 8, cost="census", aggregation="sgm")
+        >>> release_sgm_workspace()  # the volumes of that call are freed; its result is not touched
+        >>> out.disparity.shape
+        torch.Size([1, 1, 24, 32])
+    """
     _workspace.arrays = {}
 
 

@@ -70,6 +70,14 @@ class StereoOutput(NamedTuple):
         valid: ``(B, 1, H, W)`` bool, the pixels that passed every check.
         variance: ``(B, 1, H, W)`` measurement variance in px^2 (>= 1/12; INVALID_VARIANCE where invalid), a
             heuristic of the detached costs: no gradient.
+
+    Example:
+        >>> left = torch.rand(1, 1, 24, 32)
+        >>> out = match_stereo(left, torch.roll(left, -3, dims=3), 8)  # the right image: shifted 3 px left
+        >>> out.disparity.shape, out.valid.dtype, out.variance.shape
+        (torch.Size([1, 1, 24, 32]), torch.bool, torch.Size([1, 1, 24, 32]))
+        >>> torch.allclose(out.disparity[0, 0, 8:-8, 12:-8], torch.tensor(3.0), atol=0.1)
+        True
     """
 
     disparity: torch.Tensor

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from egorefine.core import DTypeError, ValueRangeError
 from egorefine.data import FAMILIES, IMAGING, PRESETS, Imaging, render_sequence
 from egorefine.data._families import FAMILY_NAMES, family_tile
-from egorefine.data.synthetic import _build_scene, _surface_families, _trajectory
+from egorefine.data._world import _build_scene, _surface_families, _trajectory
 
 H, W = 96, 128
 REFERENCE = Path(__file__).with_name("ideal_reference.npz")

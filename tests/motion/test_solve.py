@@ -338,7 +338,7 @@ def test_twist_exponential_matches_se3_exp_and_ignores_the_batch():
     # The LM retraction: scaling and squaring in batched products; equal to the closed form to rounding for the
     # increments LM takes (and well beyond), and an item's result independent of its batch neighbours.
     from egorefine.geometry import se3_exp
-    from egorefine.motion.solve import _se3_generators, _twist_exp
+    from egorefine.motion._lm import _se3_generators, _twist_exp
 
     g = torch.Generator().manual_seed(3)
     scales = torch.logspace(-4, 0, 16, dtype=torch.float64)[:, None]

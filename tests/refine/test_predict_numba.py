@@ -1,5 +1,5 @@
-"""The compiled CPU path of the hard splat and of crack closing (egorefine.refine._predict_numba) against the
-torch path, which stays the reference (GPU, float64, autograd)."""
+"""The compiled CPU path of the hard splat and of crack closing (egorefine.refine._splat_numba, _predict_numba)
+against the torch path, which stays the reference (GPU, float64, autograd)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 
 from egorefine.core import _jit
 from egorefine.data import render_sequence
-from egorefine.refine import _predict_numba, close_cracks, predict_disparity
+from egorefine.refine import _predict_numba, _splat_numba, close_cracks, predict_disparity
 from egorefine.refine.cracks import finish_prediction
 from egorefine.refine.predict import Prediction
 
@@ -103,7 +103,7 @@ def test_torch_path_where_the_compiled_one_does_not_apply(scene, monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the compiled path ran")
 
-    monkeypatch.setattr(_predict_numba, "hard_splat", refuse)
+    monkeypatch.setattr(_splat_numba, "hard_splat", refuse)
     monkeypatch.setattr(_jit, "AVAILABLE", True)
     predict_disparity(d.double(), motion, K, b)  # float64
     predict_disparity(d.clone().requires_grad_(True), motion, K, b)  # autograd

@@ -1,0 +1,229 @@
+"""``egorefine run``: refine a recording and write its maps, trajectory and run.json; the deprecated ``folder``."""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import __version__
+from ..core import ValueRangeError, progress
+from ._shared import _FRAME_DIRS, _RUN_JSON, _TRAJECTORY_FILES, _write_json
+
+# Colour of the preview pixels without a value (mid grey: outside the turbo colour map).
+_INVALID_RGB = (128, 128, 128)
+
+
+def _device(name: str) -> torch.device:
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueRangeError(f"--device: expected cpu, cuda or cuda:N, got {name!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueRangeError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
+    return device
+
+
+def _check_output(out: Path, overwrite: bool) -> None:
+    """Refuse an output folder that holds results of a run, finished or not (unless ``overwrite``)."""
+    if out.exists() and not out.is_dir():
+        raise ValueRangeError(f"--out: {str(out)!r} exists and is not a folder")
+    found = [name for name in (_RUN_JSON, *_TRAJECTORY_FILES) if (out / name).exists()]
+    found += [name + "/" for name in _FRAME_DIRS if (out / name).is_dir() and any((out / name).iterdir())]
+    if found and not overwrite:
+        raise ValueRangeError(f"--out: {str(out)!r} already holds results ({', '.join(found)}); "
+                              "pass --overwrite to replace them or choose another folder")
+
+
+def _clear_output(out: Path) -> None:
+    """Delete what an earlier run wrote to ``out``; run.json first, so the folder stops looking finished."""
+    for name in (_RUN_JSON, *_TRAJECTORY_FILES):
+        (out / name).unlink(missing_ok=True)
+    for name in _FRAME_DIRS:
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+
+
+def _nearest_rigid(poses: torch.Tensor) -> torch.Tensor:
+    """Poses ``(T, 4, 4)`` with each rotation block replaced by the nearest rotation (SVD).
+
+    Motions estimated in float32 compose to blocks that are orthonormal only to float32 precision; a TUM file
+    stores a unit quaternion, so without this its poses and the KITTI file's would differ at that level.
+    """
+    U, _, Vh = torch.linalg.svd(poses[:, :3, :3])
+    flip = torch.ones_like(poses[:, :3, 0])
+    flip[:, 2] = torch.sign(torch.linalg.det(U @ Vh))
+    out = poses.clone()
+    out[:, :3, :3] = U @ torch.diag_embed(flip) @ Vh
+    return out
+
+
+def _write_trajectories(out: Path, prefix: str, poses: torch.Tensor, stamps: np.ndarray | None) -> list[str]:
+    from ..data import atomic_path, write_kitti_poses, write_tum
+
+    names = []
+    for fmt in ("tum", "kitti"):
+        name = f"{prefix}_{fmt}.txt"
+        with atomic_path(out / name) as tmp:
+            if fmt == "tum":
+                write_tum(tmp, poses, stamps)
+            else:
+                write_kitti_poses(tmp, poses)
+        names.append(name)
+    return names
+
+
+def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dict, files: list[str],
+                timings: dict) -> dict:
+    """What run.json holds: version, settings, calibration, frame counts, the meaning of each output, timings."""
+    H, W = rec.image_size
+    suffix = _format_suffix(args.format)
+    settings = {k: v for k, v in vars(args).items() if k not in ("func", "argv")}
+    if args.frames is not None:
+        start, stop, step = (("" if v is None else str(v)) for v in (args.frames.start, args.frames.stop,
+                                                                     args.frames.step))
+        settings["frames"] = f"{start}:{stop}" + (f":{step}" if step else "")
+    return {
+        "egorefine_version": __version__,
+        "torch_version": torch.__version__,
+        "command": ["egorefine", *(args.argv or [])],
+        "settings": settings,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "calibration": {
+            "K": rec.K.double().cpu().tolist(),
+            "baseline_m": float(rec.baseline),
+            "image_size_hw": [int(H), int(W)],
+            "rectified_input": bool(rec.rectified_input),
+        },
+        "frames": frames,
+        "outputs": {
+            "disparity": f"disparity/<frame>{suffix}: "
+                         + {"png16": "uint16 PNG, disparity = value / 256 px, 0 = invalid",
+                            "pfm": "float32 PFM, px, +inf = invalid",
+                            "npy": "float32 npy, px, NaN = invalid"}[args.format],
+            "valid": "valid/<frame>.png: uint8, 255 = valid",
+            "confidence": f"confidence/<frame>{suffix}: 1 / (1 + variance px^2) in [0, 1]"
+                          + (", stored as value / 65535" if args.format == "png16" else ""),
+            "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid",
+            "trajectory": files,
+            "trajectory_frame": "world_T_camera of the rectified left camera; starts at the recording's first "
+                                "true pose where it has one, else at the identity",
+        },
+        "timings": timings,
+    }
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..data import open_recording, write_confidence, write_disparity, write_mask, write_preview
+    from ..refine import EgoMotionRefiner, StereoOptions
+    from ..viz import colorize_disparity
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    device = _device(args.device)
+    out = Path(args.out)
+    _check_output(out, args.overwrite)  # before reading: a refusal costs nothing
+    t_start = time.perf_counter()
+    rec = open_recording(args.input, args.layout, calib=args.calib, frames=args.frames, camera=args.camera)
+    T = len(rec)
+    if T < 2:
+        raise ValueRangeError(f"{args.input}: {T} frame(s) in the chosen range; refining needs at least 2 "
+                              "(one to start from, one to predict)")
+    H, W = rec.image_size
+    if not args.max_disparity < W:
+        raise ValueRangeError(f"--max-disparity: expected less than the image width {W}, got {args.max_disparity}")
+    cost, _, aggregation = args.matcher.partition("+")
+    refiner = EgoMotionRefiner(max_disparity=args.max_disparity, verify_every=args.verify_every, fusion=args.fusion,
+                               motion_method=args.motion,
+                               stereo=StereoOptions(cost=cost, aggregation=aggregation or "box"))
+    K = rec.K.to(device=device, dtype=torch.float32)[None]
+    baseline = torch.tensor([float(rec.baseline)], device=device)
+    t_open = time.perf_counter() - t_start
+    _clear_output(out)  # only once the input is known to be good: bad input leaves an earlier run as it was
+    for name in _FRAME_DIRS:
+        (out / name).mkdir(parents=True, exist_ok=True)
+
+    world_T_camera = [torch.eye(4, dtype=torch.float64) if rec.poses is None else rec.poses[0].double().cpu()]
+    refine_ms, write_ms, stereo_frames, motion_failed = [], [], 0, 0
+    state = None
+    with torch.no_grad():
+        for t in progress(range(T), total=T, desc="egorefine run", enabled=not args.quiet):
+            left, right = rec[t]
+            left, right = left.to(device), right.to(device)
+            t0 = time.perf_counter()
+            result, state = refiner(left, right, K, baseline, state)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            refine_ms.append((time.perf_counter() - t0) * 1e3)
+            t0 = time.perf_counter()
+            if t > 0:  # compose camera_t_T_camera_{t-1} into world_T_camera_t
+                world_T_camera.append(world_T_camera[-1] @ torch.linalg.inv(result.motion[0].double().cpu()))
+            stereo_frames += bool(result.stereo_ran)
+            motion_failed += int(not bool(result.motion_ok[0]))
+            disp, valid = result.disparity[0, 0].cpu(), result.valid[0, 0].cpu()
+            stem = rec.names[t]
+            write_disparity(out / "disparity" / stem, disp, valid, args.format)
+            write_mask(out / "valid" / f"{stem}.png", valid)
+            write_confidence(out / "confidence" / stem, result.confidence[0, 0].cpu(), args.format)
+            write_preview(out / "preview" / f"{stem}.png",
+                          colorize_disparity(disp, args.max_disparity, valid, invalid_color=_INVALID_RGB))
+            write_ms.append((time.perf_counter() - t0) * 1e3)
+
+    poses = _nearest_rigid(torch.stack(world_T_camera))
+    files = _write_trajectories(out, "trajectory", poses, rec.timestamps)
+    if rec.poses is not None:
+        files += _write_trajectories(out, "groundtruth", rec.poses.double().cpu(), rec.timestamps)
+    timings = {
+        "open_s": t_open,
+        "total_s": time.perf_counter() - t_start,
+        "refine_ms_first_frame": refine_ms[0],
+        "refine_ms_median": float(np.median(refine_ms)),
+        "refine_ms_mean_after_first": float(np.mean(refine_ms[1:])),
+        "write_ms_mean": float(np.mean(write_ms)),
+        "note": "the first frame includes numba's compilation of the kernels",
+    }
+    frames = {"count": T, "first": rec.names[0], "last": rec.names[-1], "stereo_ran": stereo_frames,
+              "motion_failed": motion_failed, "has_groundtruth_poses": rec.poses is not None}
+    report = _run_report(args, rec, device, frames, files, timings)
+    _write_json(out / _RUN_JSON, report)
+    if not args.quiet:
+        print(f"egorefine run: {T} frames ({W}x{H}) -> {out}/ (stereo on {stereo_frames}, "
+              f"{float(np.median(refine_ms)):.1f} ms/frame median); trajectory: {', '.join(files)}", file=sys.stderr)
+    return 0
+
+
+def _format_suffix(fmt: str) -> str:
+    from ..data import DISPARITY_FORMATS
+
+    return DISPARITY_FORMATS[fmt]
+
+
+# -- folder (deprecated: run --layout folders does what it did) ---------------------------------------------------
+def _folder(args: argparse.Namespace) -> int:
+    from ..data import ImageFolderSequence, write_disparity
+    from ..geometry import make_intrinsics
+    from ..refine import EgoMotionRefiner
+
+    print("egorefine folder: deprecated; use 'egorefine run INPUT --layout folders --calib FILE'", file=sys.stderr)
+    torch.set_num_threads(args.threads)
+    frames = ImageFolderSequence(args.left, args.right)
+    if len(frames) < 2:
+        raise ValueRangeError(f"--left: {len(frames)} frame(s); refining needs at least 2")
+    K = make_intrinsics(args.focal, args.cx, args.cy)
+    baseline = torch.tensor([args.baseline])
+    refiner = EgoMotionRefiner(max_disparity=args.max_disparity, verify_every=args.verify_every, fusion=args.fusion)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    state = None
+    with torch.no_grad():
+        for t in progress(range(len(frames)), desc="egorefine folder", enabled=not args.quiet):
+            left, right = frames[t]
+            out, state = refiner(left, right, K, baseline, state)
+            write_disparity(out_dir / f"{t:06d}", out.disparity[0, 0], out.valid[0, 0], "pfm")
+    return 0
