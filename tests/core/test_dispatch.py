@@ -394,8 +394,12 @@ def test_torch_compile_of_the_refiner_matches_eager(backend, require_backend):
             want = run(refiner)
         finally:
             dispatch.ENABLED = True
+    # inductor's code sums in other orders than eager's kernels (vectorised reductions): float32 rounding
+    # differences, which the motion solve and the prediction frames carry on, far below the float32 refiner's
+    # own distance to a float64 run (here about 100 times below); the eager backend runs eager's kernels
+    atol_disparity, atol_motion = (1e-5, 1e-5) if backend == "eager" else (1e-3, 1e-4)
     for a, e in zip(got, want, strict=True):
         assert a.stereo_ran == e.stereo_ran
         assert torch.equal(a.valid, e.valid)
-        torch.testing.assert_close(a.disparity, e.disparity, atol=1e-5, rtol=0)
-        torch.testing.assert_close(a.motion, e.motion, atol=1e-5, rtol=0)
+        torch.testing.assert_close(a.disparity, e.disparity, atol=atol_disparity, rtol=0)
+        torch.testing.assert_close(a.motion, e.motion, atol=atol_motion, rtol=0)
