@@ -103,7 +103,8 @@ def _settle(label: torch.Tensor, links: dict[int, torch.Tensor], steps: int, non
     torch) compiling unrolls the loop.
     """
     if _is_compiling() and _while_loop is not None:
-        # the count as a carried tensor: inductor's loop code lost a symbolic int the condition read
+        # the count as a carried tensor: as a Python int it turns symbolic once dynamo recompiles for another
+        # max_size, and inductor's loop code lost that symbol (a NameError in its wrapper)
         _, label = _while_loop(lambda n, _: n > 0, lambda n, lab: (n - 1, _propagate_(lab.clone(), links, none)),
                                (torch.full((), steps, dtype=torch.int64, device=label.device), label))
         return label
