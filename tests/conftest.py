@@ -24,3 +24,16 @@ def euroc_root() -> Path:
     if not root.exists():
         pytest.skip(f"EuRoC clip not found at {root}")
     return root
+
+
+@pytest.fixture
+def require_backend():
+    """A check that skips the test unless ``torch.compile`` works with the named backend here."""
+    def check(backend: str) -> None:
+        try:
+            works = bool(torch.compile(lambda x: x + 1, backend=backend)(torch.ones(2)).eq(2).all())
+        except Exception:  # no C++ compiler, or a backend this build lacks
+            works = False
+        if not works:
+            pytest.skip(f"torch.compile's {backend!r} backend does not work here")
+    return check

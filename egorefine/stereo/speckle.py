@@ -15,12 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..core import DTypeError, ValueRangeError, check_shape, use_compiled
 from ..core._jit import AVAILABLE
 from ..core._jit import jit as _jit
+from ..core.dispatch import _is_compiling
 
 __all__ = ["remove_speckles"]
+
+_while_loop = getattr(torch, "while_loop", None)  # None in older torch
 
 if AVAILABLE:
 
@@ -65,6 +69,50 @@ def _links(disp: torch.Tensor, valid: torch.Tensor, max_diff: float, dim: int) -
     return valid.narrow(dim, 0, n - 1) & valid.narrow(dim, 1, n - 1) & ((b - a).abs() <= max_diff)
 
 
+def _ends(pairs: torch.Tensor, dim: int) -> torch.Tensor:
+    """How many marked neighbour pairs along ``dim`` each pixel is in (``pairs``: one shorter there), int64.
+
+    Counts, not a bool mask: a bool padded or or-ed into overlapping ``narrow`` views of a bool tensor (the first
+    form) made torch.compile's inductor backend emit C++ that does not compile (a masked bool load typed two
+    ways). Only whether a region's sum is 0 matters, which the counts keep.
+    """
+    first, second = ((0, 1), (1, 0)) if dim == -1 else ((0, 0, 0, 1), (0, 0, 1, 0))  # F.pad: last dim first
+    pairs = pairs.long()
+    return F.pad(pairs, first) + F.pad(pairs, second)
+
+
+def _propagate_(label: torch.Tensor, links: dict[int, torch.Tensor], none: int) -> torch.Tensor:
+    """One step, in place: each linked pair along x, then along y, both get the smaller label (``none``: no link)."""
+    for dim, link in links.items():
+        n = label.shape[dim]
+        lo, hi = label.narrow(dim, 0, n - 1), label.narrow(dim, 1, n - 1)
+        # the smaller label of each linked pair, given to both (each minimum is a new tensor before its copy)
+        best = torch.where(link, torch.minimum(lo, hi), none)
+        lo.copy_(torch.minimum(lo, best))
+        hi.copy_(torch.minimum(hi, best))
+    return label
+
+
+def _settle(label: torch.Tensor, links: dict[int, torch.Tensor], steps: int, none: int) -> torch.Tensor:
+    """``label`` after ``steps`` propagation steps (in place in eager mode).
+
+    Eager: a Python loop. Under ``torch.compile``, ``torch.while_loop`` with one step as its body: dynamo unrolls
+    a Python loop, and ``steps`` is the speckle size (hundreds), so the unrolled graph took inductor minutes of
+    code generation, growing with the size and per input shape; the loop's graph holds one step whatever the
+    count. The body steps a copy (a loop body must not change its inputs). Without ``torch.while_loop`` (older
+    torch) compiling unrolls the loop.
+    """
+    if _is_compiling() and _while_loop is not None:
+        # the count as a carried tensor: as a Python int it turns symbolic once dynamo recompiles for another
+        # max_size, and inductor's loop code lost that symbol (a NameError in its wrapper)
+        _, label = _while_loop(lambda n, _: n > 0, lambda n, lab: (n - 1, _propagate_(lab.clone(), links, none)),
+                               (torch.full((), steps, dtype=torch.int64, device=label.device), label))
+        return label
+    for _ in range(steps):
+        _propagate_(label, links, none)
+    return label
+
+
 def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: int, max_diff: float) -> torch.Tensor:
     b, _, h, w = disp.shape
     total = b * h * w
@@ -74,24 +122,16 @@ def _remove_speckles_torch(disp: torch.Tensor, valid: torch.Tensor, max_size: in
     none = torch.full_like(index, total)  # the label of invalid pixels (and of "no link")
     label = torch.where(valid, index, none)
     links = {dim: _links(disp, valid, max_diff, dim) for dim in (-1, -2)}
-    for _ in range(max_size - 1):  # a region of s <= max_size pixels spans at most s - 1 links
-        for dim, link in links.items():
-            n = label.shape[dim]
-            lo, hi = label.narrow(dim, 0, n - 1), label.narrow(dim, 1, n - 1)
-            # the smaller label of each linked pair, given to both (each minimum is a new tensor before its copy)
-            best = torch.where(link, torch.minimum(lo, hi), total)
-            lo.copy_(torch.minimum(lo, best))
-            hi.copy_(torch.minimum(hi, best))
+    # a region of s <= max_size pixels spans at most s - 1 links
+    label = _settle(label, links, max_size - 1, total)
     # a region whose labels still differ across one of its links has not settled: it is large
-    unsettled = torch.zeros(b, 1, h, w, dtype=torch.bool, device=disp.device)
+    unsettled = torch.zeros_like(label, dtype=torch.long)  # per pixel: its links across which labels differ
     for dim, link in links.items():
         n = label.shape[dim]
-        differ = link & (label.narrow(dim, 0, n - 1) != label.narrow(dim, 1, n - 1))
-        unsettled.narrow(dim, 0, n - 1).logical_or_(differ)
-        unsettled.narrow(dim, 1, n - 1).logical_or_(differ)
+        unsettled = unsettled + _ends(link & (label.narrow(dim, 0, n - 1) != label.narrow(dim, 1, n - 1)), dim)
     flat = label.flatten().long()
     size = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, valid.flatten().long())
-    open_ = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, unsettled.flatten().long())
+    open_ = torch.zeros(total + 1, dtype=torch.long, device=disp.device).index_add_(0, flat, unsettled.flatten())
     small = (size[flat] <= max_size) & (open_[flat] == 0)
     return valid & ~small.view(b, 1, h, w)
 

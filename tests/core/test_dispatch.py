@@ -368,21 +368,13 @@ def test_refine_sequence_gradient_after_a_prediction_frame(seq, dtype):
     assert _reaches(g[1]) and _reaches(g[2])
 
 
-def _backend_works(backend: str) -> bool:
-    try:
-        return bool(torch.compile(lambda x: x + 1, backend=backend)(torch.ones(2)).eq(2).all())
-    except Exception:  # no C++ compiler, or a backend this build lacks
-        return False
-
-
 @pytest.mark.filterwarnings("ignore:Dynamo does not know how to trace the builtin")  # (graph breaks: eager there)
 @pytest.mark.parametrize("backend", ["eager", pytest.param("inductor", marks=pytest.mark.slow)])
-def test_torch_compile_of_the_refiner_matches_eager(backend):
+def test_torch_compile_of_the_refiner_matches_eager(backend, require_backend):
     """With the rule, dynamo never reaches a compiled kernel (it handed one a 0-d array on frame 0): the compiled
     refiner runs the torch paths and gives eager's torch-path outputs. ``"eager"`` checks dynamo's tracing alone;
     ``"inductor"`` (slow: minutes of code generation on a small CPU) also the generated code."""
-    if not _backend_works(backend):
-        pytest.skip(f"torch.compile's {backend!r} backend does not work here")
+    require_backend(backend)
     seq = render_sequence(num_frames=3, height=32, width=48, seed=1)
     K, b = _rig(seq)
     refiner = EgoMotionRefiner(verify_every=2, max_disparity=12, max_features=32, min_tracks=8)
@@ -402,8 +394,12 @@ def test_torch_compile_of_the_refiner_matches_eager(backend):
             want = run(refiner)
         finally:
             dispatch.ENABLED = True
+    # inductor's code sums in other orders than eager's kernels (vectorised reductions): float32 rounding
+    # differences, which the motion solve and the prediction frames carry on, far below the float32 refiner's
+    # own distance to a float64 run (here about 100 times below); the eager backend runs eager's kernels
+    atol_disparity, atol_motion = (1e-5, 1e-5) if backend == "eager" else (1e-3, 1e-4)
     for a, e in zip(got, want, strict=True):
         assert a.stereo_ran == e.stereo_ran
         assert torch.equal(a.valid, e.valid)
-        torch.testing.assert_close(a.disparity, e.disparity, atol=1e-5, rtol=0)
-        torch.testing.assert_close(a.motion, e.motion, atol=1e-5, rtol=0)
+        torch.testing.assert_close(a.disparity, e.disparity, atol=atol_disparity, rtol=0)
+        torch.testing.assert_close(a.motion, e.motion, atol=atol_motion, rtol=0)

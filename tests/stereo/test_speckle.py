@@ -90,6 +90,22 @@ def test_batch_items_are_independent():
         assert torch.equal(whole, alone)
 
 
+
+@pytest.mark.parametrize("backend", ["eager", pytest.param("inductor", marks=pytest.mark.slow)])
+def test_torch_compile_gives_the_same_mask(backend, require_backend):
+    """Compiled, the filter runs its torch path with the propagation as one ``torch.while_loop`` (where torch has
+    it) and gives the mask of both eager paths; inductor once failed on it (C++ that did not compile)."""
+    require_backend(backend)
+    disp, valid = _random_map(5)
+    disp[..., :12, :], valid[..., :12, :] = 30.0, True  # a surface of 372 pixels above the small regions
+    compiled = torch.compile(remove_speckles, backend=backend, fullgraph=True)
+    for max_size in (9, 200):  # 200: match_stereo's default
+        want, reference = _both(disp, valid, max_size, 1.0)
+        assert torch.equal(want, reference)
+        got = compiled(disp, valid, max_size, 1.0)
+        assert torch.equal(got, want)
+        assert 0 < int((valid & ~got).sum()) < int(valid.sum())  # some regions removed, not all
+
 def test_bad_input():
     d, v = torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 4, dtype=torch.bool)
     with pytest.raises(ShapeError, match="valid"):
