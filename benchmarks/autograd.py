@@ -69,11 +69,11 @@ from egorefine.data import render_sequence  # noqa: E402
 from egorefine.features import build_pyramid  # noqa: E402
 from egorefine.refine import EgoMotionRefiner  # noqa: E402
 
-# The refiner configurations: a row is one more entry (e.g. {"name": "kalman differentiable",
-# "kwargs": {"fusion": "kalman", "differentiable": True}} once the refiner takes that keyword).
+# The refiner configurations: a row is one more entry.
 CONFIGS = [
     {"name": "kalman default", "kwargs": {"fusion": "kalman"}},
     {"name": "paper default", "kwargs": {"fusion": "paper"}},
+    {"name": "kalman differentiable", "kwargs": {"fusion": "kalman", "differentiable": True}},
 ]
 SIZES = [(320, 240), (640, 480)]
 GRAD_SIZE = (320, 240)

@@ -63,6 +63,10 @@ class StereoOptions:
         subpixel: the sub-pixel fit through the winner's neighbours (False: the paper's integer disparities).
         temperature: the soft-argmin's temperature in cost units (``differentiable=True``; None: the matcher's
             default for its cost).
+        uniqueness_ratio: reject a winner whose cost is not this share below the runner-up's (0: no test).
+        speckle_size: connected regions of fewer pixels are removed (0: no speckle filter).
+        speckle_range: px, neighbours closer than this belong to one region of the speckle filter.
+        lr_threshold: px, the left-right check's tolerance.
 
     Example:
         >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
@@ -79,6 +83,10 @@ class StereoOptions:
     aggregation: str | None = None
     subpixel: bool | None = None
     temperature: float | None = None
+    uniqueness_ratio: float | None = None
+    speckle_size: int | None = None
+    speckle_range: float | None = None
+    lr_threshold: int | None = None
 
     def __post_init__(self) -> None:
         if int(self.min_disparity) != self.min_disparity or self.min_disparity < 0:
@@ -91,11 +99,38 @@ class StereoOptions:
             check_choice(self.aggregation, ("box", "sgm"), "aggregation")
         if self.temperature is not None and not float(self.temperature) > 0:
             raise ValueRangeError(f"temperature: expected > 0 or None, got {self.temperature}")
+        if self.uniqueness_ratio is not None and not 0.0 <= float(self.uniqueness_ratio) < 1.0:
+            raise ValueRangeError(f"uniqueness_ratio: expected in [0, 1) or None, got {self.uniqueness_ratio}")
+        if self.speckle_size is not None and (int(self.speckle_size) != self.speckle_size or self.speckle_size < 0):
+            raise ValueRangeError(f"speckle_size: expected an integer >= 0 or None, got {self.speckle_size}")
+        if self.speckle_range is not None and not float(self.speckle_range) > 0:
+            raise ValueRangeError(f"speckle_range: expected > 0 or None, got {self.speckle_range}")
+        if self.lr_threshold is not None and (int(self.lr_threshold) != self.lr_threshold or self.lr_threshold < 0):
+            raise ValueRangeError(f"lr_threshold: expected an integer >= 0 or None, got {self.lr_threshold}")
+
+    @classmethod
+    def dense(cls) -> StereoOptions:
+        """The census + SGM matcher set for density: uniqueness test off, SGBM's speckle range of 2 px and a left-right
+        tolerance of 2 px, block 5.
+
+        Stereo runs on one frame in ``verify_every``, so a slower, denser matcher there costs a fraction of its
+        time per frame. With ``fusion="kalman"`` and ``CorrectionOptions(max_unverified_variance=None)`` it gives
+        the loop about per-frame SGBM's density at a lower error, and about twice the default matcher's error
+        (docs/decisions.md, "A dense configuration of the loop").
+
+        Example:
+            >>> StereoOptions.dense().matcher_options()["aggregation"]
+            'sgm'
+        """
+        return cls(cost="census", aggregation="sgm", block_size=5, uniqueness_ratio=0.0, speckle_range=2.0,
+                   lr_threshold=2)
 
     def matcher_options(self) -> dict:
         """The keyword arguments of :func:`~egorefine.stereo.match_stereo` that were set (None: its default)."""
         named = {"block_size": self.block_size, "cost": self.cost, "aggregation": self.aggregation,
-                 "subpixel": self.subpixel}
+                 "subpixel": self.subpixel, "uniqueness_ratio": self.uniqueness_ratio,
+                 "speckle_size": self.speckle_size, "speckle_range": self.speckle_range,
+                 "lr_threshold": self.lr_threshold}
         return {k: v for k, v in named.items() if v is not None}
 
 

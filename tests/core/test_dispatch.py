@@ -12,7 +12,14 @@ from egorefine.data import render_sequence
 from egorefine.features import build_pyramid, detect, replenish, track
 from egorefine.geometry import make_intrinsics, project, transform_points, twist_to_motion, unproject
 from egorefine.motion import motion_field, solve_ego_motion
-from egorefine.refine import EgoMotionRefiner, close_cracks, correct_disparity, predict_disparity, refine_sequence
+from egorefine.refine import (
+    EgoMotionRefiner,
+    TrackingOptions,
+    close_cracks,
+    correct_disparity,
+    predict_disparity,
+    refine_sequence,
+)
 from egorefine.refine.correct import edge_variance
 from egorefine.refine.cracks import finish_prediction
 from egorefine.stereo import block_matching, match_residual, match_stereo, match_stereo_regions
@@ -377,7 +384,8 @@ def test_torch_compile_of_the_refiner_matches_eager(backend, require_backend):
     require_backend(backend)
     seq = render_sequence(num_frames=3, height=32, width=48, seed=1)
     K, b = _rig(seq)
-    refiner = EgoMotionRefiner(verify_every=2, max_disparity=12, max_features=32, min_tracks=8)
+    tracking = TrackingOptions(max_features=32, min_tracks=8)
+    refiner = EgoMotionRefiner(verify_every=2, max_disparity=12, tracking=tracking)
     compiled = torch.compile(refiner, backend=backend)
 
     def run(model):

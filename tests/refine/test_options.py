@@ -24,6 +24,8 @@ from egorefine.refine.options import GROUPS, LEGACY_KEYWORDS
 
 @pytest.mark.parametrize("cls, field, value", [
     (StereoOptions, "block_size", 8), (StereoOptions, "cost", "ssd"), (StereoOptions, "min_disparity", -1),
+    (StereoOptions, "uniqueness_ratio", 1.0), (StereoOptions, "speckle_size", -5), (StereoOptions, "speckle_range", 0),
+    (StereoOptions, "lr_threshold", 1.5),
     (TrackingOptions, "max_features", 0), (TrackingOptions, "min_tracks", -1),
     (PredictionOptions, "splat", "blob"), (PredictionOptions, "process_noise", -0.1),
     (CorrectionOptions, "gain", 0.0), (CorrectionOptions, "gain", 1.5), (CorrectionOptions, "kalman_gate", 0.0),
@@ -77,3 +79,19 @@ def test_old_and_new_forms_give_the_same_maps():
                           tracking=TrackingOptions(max_features=64, min_tracks=16),
                           prediction=PredictionOptions(process_noise=0.02))
     assert torch.equal(old.valid, new.valid) and torch.equal(old.disparity, new.disparity)
+
+
+def test_stereo_options_reach_the_verification_matcher():
+    """The matcher settings of StereoOptions are the ones the refiner's frame-0 stereo uses."""
+    from egorefine.stereo import match_stereo
+
+    seq = render_sequence(num_frames=1, height=48, width=64, seed=2)
+    K, b = seq.K[None], torch.tensor([seq.baseline])
+    options = StereoOptions(cost="census", aggregation="sgm", block_size=5, uniqueness_ratio=0.0, speckle_size=20,
+                            speckle_range=2.0, lr_threshold=2)
+    out, _ = EgoMotionRefiner(max_disparity=16, stereo=options)(seq.left[:1], seq.right[:1], K, b)
+    want = match_stereo(seq.left[:1], seq.right[:1], 16, **options.matcher_options())
+    assert torch.equal(out.valid, want.valid)
+    torch.testing.assert_close(out.disparity[want.valid], want.disparity[want.valid])
+    default = match_stereo(seq.left[:1], seq.right[:1], 16, cost="census", aggregation="sgm", block_size=5)
+    assert not torch.equal(default.valid, want.valid)  # the settings change the result, so the check can fail
