@@ -34,6 +34,7 @@ refiner configurations are the named keyword dicts of ``CONFIGS``; a keyword the
     python benchmarks/autograd.py                     # full run (long: compiling the refiner takes minutes)
     python benchmarks/autograd.py --backends none     # gradients only, no torch.compile
     python benchmarks/autograd.py --table-only        # rewrite the README table from the last JSON
+    python benchmarks/autograd.py --sizes 320x240 --compile-configs "kalman default"   # compile one, at one size
 
 Writes benchmarks/results/autograd.json, autograd.md and the README's ``autograd`` table (with ``--out DIR``:
 the JSON and markdown in DIR only).
@@ -377,6 +378,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of the gradient steps")
     parser.add_argument("--compile-repeats", type=int, default=2, help="timed passes of the compile part")
     parser.add_argument("--configs", default=None, help="comma-separated names of CONFIGS to run (default: all)")
+    parser.add_argument("--compile-configs", default=None,
+                        help="comma-separated names of the configurations the compile part runs (default: --configs)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--sizes", default=",".join(f"{w}x{h}" for w, h in SIZES), help="compile part, WxH,...")
     parser.add_argument("--grad-size", default="x".join(map(str, GRAD_SIZE)))
@@ -438,6 +441,8 @@ def main(argv: list[str] | None = None) -> dict:
                 torch.save({"left": lefts, "right": rights, "K": K, "b": b}, data_path)
                 fell_back = False
                 for name, config in refiners.items():
+                    if args.compile_configs is not None and name not in args.compile_configs.split(","):
+                        continue
                     tried = list(backends)
                     for backend in tried:
                         r = run_compile(config, (width, height), backend, data_path, args)
