@@ -115,8 +115,8 @@ class StereoOptions:
 
         Stereo runs on one frame in ``verify_every``, so a slower, denser matcher there costs a fraction of its
         time per frame. With ``fusion="kalman"`` and ``CorrectionOptions(max_unverified_variance=None)`` it gives
-        the loop about per-frame SGBM's density at a lower error, and about twice the default matcher's error
-        (docs/decisions.md, "A dense configuration of the loop").
+        the loop about per-frame SGBM's density at a lower error than SGBM's, but a higher one than the default
+        matcher's (docs/decisions.md, "A dense configuration of the loop").
 
         Example:
             >>> StereoOptions.dense().matcher_options()["aggregation"]
