@@ -67,6 +67,11 @@ class StereoOptions:
         speckle_size: connected regions of fewer pixels are removed (0: no speckle filter).
         speckle_range: px, neighbours closer than this belong to one region of the speckle filter.
         lr_threshold: px, the left-right check's tolerance.
+        fill: where the matcher finds no match, take the match of :meth:`dense`'s census + SGM matcher
+            (:func:`~egorefine.stereo.fill_invalid`). None: on in Kalman mode with a box matcher (the filter keeps
+            the box matcher's accurate, noise-dominated values where it has them and gains SGM's density; the
+            stereo frames cost the SGM run more), off in paper mode (the paper's block matching) and with
+            ``differentiable=True`` (census is piecewise constant in the images).
 
     Example:
         >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
@@ -87,6 +92,7 @@ class StereoOptions:
     speckle_size: int | None = None
     speckle_range: float | None = None
     lr_threshold: int | None = None
+    fill: bool | None = None
 
     def __post_init__(self) -> None:
         if int(self.min_disparity) != self.min_disparity or self.min_disparity < 0:
@@ -107,6 +113,8 @@ class StereoOptions:
             raise ValueRangeError(f"speckle_range: expected > 0 or None, got {self.speckle_range}")
         if self.lr_threshold is not None and (int(self.lr_threshold) != self.lr_threshold or self.lr_threshold < 0):
             raise ValueRangeError(f"lr_threshold: expected an integer >= 0 or None, got {self.lr_threshold}")
+        if self.fill is not None and not isinstance(self.fill, bool):
+            raise ValueRangeError(f"fill: expected True, False or None, got {self.fill!r}")
 
     @classmethod
     def dense(cls) -> StereoOptions:
@@ -114,9 +122,10 @@ class StereoOptions:
         tolerance of 2 px, block 5.
 
         Stereo runs on one frame in ``verify_every``, so a slower, denser matcher there costs a fraction of its
-        time per frame. With ``fusion="kalman"`` and ``CorrectionOptions(max_unverified_variance=None)`` it gives
-        the loop about per-frame SGBM's density at a lower error than SGBM's, but a higher one than the default
-        matcher's (docs/decisions.md, "A dense configuration of the loop").
+        time per frame. Kalman mode fills the box matcher's holes with it by default (``fill``); as the only
+        matcher (with ``CorrectionOptions(max_unverified_variance=None)``) it gives the loop about per-frame
+        SGBM's density at a lower error than SGBM's, but its errors are mostly bias that temporal fusion does not
+        average away (docs/decisions.md, "A dense configuration of the loop").
 
         Example:
             >>> StereoOptions.dense().matcher_options()["aggregation"]

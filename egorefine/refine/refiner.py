@@ -41,7 +41,7 @@ from ..core import (
 )
 from ..features import build_pyramid, replenish, track
 from ..motion import solve_ego_motion
-from ..stereo import StereoOutput, match_residual, match_stereo, match_stereo_regions
+from ..stereo import StereoOutput, fill_invalid, match_residual, match_stereo, match_stereo_regions
 from ..stereo.matching import _TEMPERATURES
 from ._steps import _confidence, _expected_positions, _overrule, _take_hole_measurements
 from .correct import correct_disparity, edge_variance
@@ -87,6 +87,16 @@ _SCALE_RANGE = (1e-3, 1e3)
 
 
 
+@torch.compiler.disable  # not traced: dynamo would unroll SGM's scanline recursion, which has no gradient anyway
+def _fill_matcher(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int) -> StereoOutput:
+    """:meth:`StereoOptions.dense`'s matcher on detached float32 copies: census is piecewise constant in the
+    images (a zero gradient), so nothing is lost and the compiled CPU kernels may run; outputs in ``left``'s
+    dtype."""
+    out = match_stereo(left.detach().float(), right.detach().float(), max_disparity, min_disparity=min_disparity,
+                       **StereoOptions.dense().matcher_options())
+    return StereoOutput(out.disparity.to(left.dtype), out.valid, out.variance.to(left.dtype))
+
+
 class EgoMotionRefiner(nn.Module):
     """Sub-pixel disparity for a stereo video with stereo matching run on a fraction of the frames.
 
@@ -113,7 +123,8 @@ class EgoMotionRefiner(nn.Module):
         motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` (RANSAC around it) or ``"exact"`` (SE(3)
             reprojection; the default: first order is not enough at a metre per frame).
         stereo: :class:`~egorefine.refine.options.StereoOptions`, the verification matcher (``min_disparity``,
-            block, cost, aggregation, sub-pixel fit, soft-argmin temperature).
+            block, cost, aggregation, sub-pixel fit, soft-argmin temperature, ``fill``: in Kalman mode by
+            default the box matcher's holes are filled from census + SGM, for SGBM's density).
         tracking: :class:`~egorefine.refine.options.TrackingOptions`, the feature budget and the tracker.
         prediction: :class:`~egorefine.refine.options.PredictionOptions`, the splat, crack closing, process noise.
         correction: :class:`~egorefine.refine.options.CorrectionOptions`, the paper rule's gate and gain, the Kalman
@@ -197,6 +208,9 @@ class EgoMotionRefiner(nn.Module):
                 correction = dataclasses.replace(correction, gate_softness=_GATE_SOFTNESS)
         prediction = dataclasses.replace(prediction, splat=prediction.splat or "hard")
         tracking = dataclasses.replace(tracking, soft=bool(tracking.soft))
+        if stereo.fill is None:  # Kalman mode's verification: the box matcher, its holes filled by SGM
+            local = (stereo.aggregation or "box") == "box"
+            stereo = dataclasses.replace(stereo, fill=fusion == "kalman" and local and not self.differentiable)
         self.stereo, self.tracking, self.prediction = stereo, tracking, prediction
         self.correction, self.search, self.schedule = correction, search, schedule
 
@@ -327,11 +341,18 @@ class EgoMotionRefiner(nn.Module):
             trouble = trouble | (coverage < self.schedule.min_coverage) | (conf < self.schedule.min_confidence)
         return bool(trouble.any())
 
-    def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int, why: str = "verification"):
+    def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int,
+                why: str = "verification") -> tuple[StereoOutput, torch.Tensor]:
+        """The verification measurement, and the validity of its first matcher alone: the health signal (a
+        swapped or blank pair still gives SGM matches in the fill, but no longer the box matcher's)."""
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
-        return match_stereo(left, right, self.max_disparity, min_disparity=self.stereo.min_disparity,
-                            **self._matcher())
+        out = match_stereo(left, right, self.max_disparity, min_disparity=self.stereo.min_disparity,
+                           **self._matcher())
+        matched = out.valid
+        if self.stereo.fill:  # the holes of a local matcher filled where census + SGM matches
+            out = fill_invalid(out, _fill_matcher(left, right, self.max_disparity, self.stereo.min_disparity))
+        return out, matched
 
     def _matcher(self) -> dict:
         """The matcher's keyword arguments (the soft-argmin's temperature read at call time: it may learn)."""
@@ -461,14 +482,14 @@ class EgoMotionRefiner(nn.Module):
             # 4. verify against fresh stereo and correct.
             why = "verification" if frame % self.verify_every == 0 else (
                 "the ego-motion failed" if not bool(ok.all()) else "adaptive: low coverage or confidence")
-            meas = self._stereo(grey, right, frame, why)
+            meas, matched = self._stereo(grey, right, frame, why)
             if frame % self.verify_every != 0:
                 status = status | int(Status.STEREO_FORCED)
             cor = self._correct(grey, pred, meas, state.outlier_count, verification=True)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             # Stereo that failed wholesale (swapped, black or noise images) is rejected: the prediction stays. Regions
             # where the two disagree as a whole (an occluder, a wrong motion) take the measurement.
-            rejected = stereo_failed(meas.valid, pred.valid) & ok
+            rejected = stereo_failed(matched, pred.valid) & ok
             reset = disagreeing_regions(pred.disparity, pred.valid, meas.disparity, meas.valid)
             status = status | flag(rejected, Status.MEASUREMENT_REJECTED)
             reset_items = (count_per_item(reset) > 0) & ~rejected  # (a rejected item keeps its whole prediction)
@@ -522,7 +543,7 @@ class EgoMotionRefiner(nn.Module):
         self, grey: torch.Tensor, right: torch.Tensor | None, eye: torch.Tensor
     ) -> tuple[RefinerOutput, RefinerState]:
         B = grey.shape[0]
-        meas = self._stereo(grey, right, 0)
+        meas, _ = self._stereo(grey, right, 0)
         empty_kp = torch.zeros(B, self.tracking.max_features, 2, device=grey.device, dtype=grey.dtype)
         empty_w = torch.zeros(B, self.tracking.max_features, device=grey.device, dtype=grey.dtype)
         keypoints, weights = replenish(grey, empty_kp, empty_w, max_features=self.tracking.max_features)

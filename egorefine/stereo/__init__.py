@@ -4,7 +4,7 @@ speckle removal."""
 
 from ._sgm_numba import release_workspace as release_sgm_workspace
 from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
-from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, match_stereo
+from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, fill_invalid, match_stereo
 from .regions import mask_boxes, match_stereo_regions
 from .residual import match_residual
 from .sgm import sgm_aggregate
@@ -13,6 +13,7 @@ from .speckle import remove_speckles
 __all__ = [
     "block_matching",
     "match_stereo",
+    "fill_invalid",
     "match_residual",
     "match_stereo_regions",
     "mask_boxes",

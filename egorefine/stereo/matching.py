@@ -23,6 +23,7 @@ from torch import nn
 
 from ..core import (
     DTypeError,
+    ShapeError,
     ValueRangeError,
     _graphs,
     check_choice,
@@ -39,7 +40,7 @@ from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad
 from .sgm import sgm_aggregate
 from .speckle import remove_speckles
 
-__all__ = ["StereoOutput", "block_matching", "match_stereo", "BlockMatching", "INVALID_VARIANCE"]
+__all__ = ["StereoOutput", "block_matching", "match_stereo", "fill_invalid", "BlockMatching", "INVALID_VARIANCE"]
 
 AGGREGATIONS = ("box", "sgm")
 SUBPIXEL_FITS = ("parabola", "equiangular")
@@ -457,6 +458,45 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
     disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
     variance = torch.where(valid, variance, torch.full_like(variance, INVALID_VARIANCE))
     return StereoOutput(disparity, valid, variance)
+
+
+def fill_invalid(primary: StereoOutput, secondary: StereoOutput) -> StereoOutput:
+    """One map from two matchers: ``primary`` where it found a match, ``secondary`` where only it did.
+
+    A local matcher's valid pixels are its accurate ones, and its per-pixel errors are noise that temporal fusion
+    averages away; a global matcher (SGM) also matches the weakly textured pixels a local window cannot, with
+    errors that are mostly its smoothing's bias. Filling the first's holes from the second keeps the first's
+    accuracy where it has it and the second's density (how :class:`~egorefine.refine.EgoMotionRefiner`'s Kalman
+    mode verifies by default, ``StereoOptions.fill``).
+
+    Args:
+        primary, secondary: :class:`StereoOutput` s of one pair, each field ``(B, 1, H, W)``.
+
+    Returns:
+        :class:`StereoOutput`: disparity and variance from ``primary`` where ``primary.valid``, else from
+        ``secondary``; valid where either is. Gradients reach both through the pixels each supplies.
+
+    Example:
+        >>> ones = torch.ones(1, 1, 1, 3)
+        >>> a = StereoOutput(ones, torch.tensor([[[[True, False, False]]]]), ones)
+        >>> b = StereoOutput(2 * ones, torch.tensor([[[[True, True, False]]]]), 3 * ones)
+        >>> out = fill_invalid(a, b)
+        >>> out.disparity.flatten().tolist(), out.valid.flatten().tolist(), out.variance.flatten().tolist()
+        ([1.0, 2.0, 2.0], [True, True, False], [1.0, 3.0, 3.0])
+    """
+    if primary.disparity.shape != secondary.disparity.shape:
+        raise ShapeError(f"fill_invalid: primary is {tuple(primary.disparity.shape)}, secondary "
+                         f"{tuple(secondary.disparity.shape)}; expected the same (B, 1, H, W)")
+    keep = primary.valid
+    if use_compiled(primary.disparity, primary.variance, secondary.disparity, secondary.variance):
+        # numpy, no torch pass over the full maps (the loop's CPU inference path)
+        k = keep.numpy()
+        disparity = np.where(k, primary.disparity.numpy(), secondary.disparity.numpy())
+        variance = np.where(k, primary.variance.numpy(), secondary.variance.numpy())
+        valid = np.logical_or(k, secondary.valid.numpy())
+        return StereoOutput(torch.from_numpy(disparity), torch.from_numpy(valid), torch.from_numpy(variance))
+    return StereoOutput(torch.where(keep, primary.disparity, secondary.disparity), keep | secondary.valid,
+                        torch.where(keep, primary.variance, secondary.variance))
 
 
 def block_matching(left: torch.Tensor, right: torch.Tensor, max_disparity: int, **kwargs) -> tuple[
