@@ -115,14 +115,24 @@ def exposure_jumped(previous: torch.Tensor, current: torch.Tensor) -> torch.Tens
     return ratio > EXPOSURE_RATIO
 
 
-def stereo_failed(measured_valid: torch.Tensor, predicted_valid: torch.Tensor) -> torch.Tensor:
-    """``(B,)`` bool: stereo marks fewer than :data:`STEREO_FAILURE_SHARE` of the pixels the prediction holds.
+def stereo_failed(measured_valid: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` bool: stereo marks fewer than :data:`STEREO_FAILURE_SHARE` of the reference's pixels.
 
     Args:
-        measured_valid, predicted_valid: ``(B, 1, H, W)`` bool.
+        measured_valid: ``(B, 1, H, W)`` bool, the matcher's matches.
+        reference: ``(B, 1, H, W)`` bool, the pixels the prediction holds, or ``(B,)`` int64, a count of them
+            (the matcher's own count at the last verification, when a fill makes the prediction denser than it).
+
+    Example:
+        >>> meas = torch.zeros(2, 1, 2, 2, dtype=torch.bool)
+        >>> meas[0] = True
+        >>> stereo_failed(meas, torch.ones(2, 1, 2, 2, dtype=torch.bool)).tolist()
+        [False, True]
+        >>> stereo_failed(meas, torch.tensor([9, 0])).tolist()  # 4 < 0.5 * 9
+        [True, False]
     """
-    measured, predicted = count_per_item(measured_valid), count_per_item(predicted_valid)
-    return measured.to(torch.float64) < STEREO_FAILURE_SHARE * predicted.to(torch.float64)
+    expected = count_per_item(reference) if reference.dtype == torch.bool else reference
+    return count_per_item(measured_valid).to(torch.float64) < STEREO_FAILURE_SHARE * expected.to(torch.float64)
 
 
 def count_per_item(mask: torch.Tensor) -> torch.Tensor:

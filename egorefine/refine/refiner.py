@@ -489,7 +489,11 @@ class EgoMotionRefiner(nn.Module):
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             # Stereo that failed wholesale (swapped, black or noise images) is rejected: the prediction stays. Regions
             # where the two disagree as a whole (an occluder, a wrong motion) take the measurement.
-            rejected = stereo_failed(matched, pred.valid) & ok
+            # (with a fill, SGM matches even a swapped pair: the first matcher's count, against its own last one)
+            reference = pred.valid if state.matched is None else state.matched
+            rejected = stereo_failed(matched, reference) & ok
+            count = count_per_item(matched)
+            matched_count = count if state.matched is None else torch.where(rejected, state.matched, count)
             reset = disagreeing_regions(pred.disparity, pred.valid, meas.disparity, meas.valid)
             status = status | flag(rejected, Status.MEASUREMENT_REJECTED)
             reset_items = (count_per_item(reset) > 0) & ~rejected  # (a rejected item keeps its whole prediction)
@@ -534,8 +538,10 @@ class EgoMotionRefiner(nn.Module):
             key = (disparity, variance, valid, eye.clone(), 0)
         else:
             key = (state.key_disparity, state.key_variance, state.key_valid, key_motion, steps)
+            matched_count = state.matched
         new_state = RefinerState(
-            grey, keypoints, weights, disparity, variance, valid, outliers, motion, *key[:4], frame, key[4], pyramid
+            grey, keypoints, weights, disparity, variance, valid, outliers, motion, *key[:4], frame, key[4], pyramid,
+            matched_count,
         )
         return out, new_state
 
@@ -543,7 +549,7 @@ class EgoMotionRefiner(nn.Module):
         self, grey: torch.Tensor, right: torch.Tensor | None, eye: torch.Tensor
     ) -> tuple[RefinerOutput, RefinerState]:
         B = grey.shape[0]
-        meas, _ = self._stereo(grey, right, 0)
+        meas, matched = self._stereo(grey, right, 0)
         empty_kp = torch.zeros(B, self.tracking.max_features, 2, device=grey.device, dtype=grey.dtype)
         empty_w = torch.zeros(B, self.tracking.max_features, device=grey.device, dtype=grey.dtype)
         keypoints, weights = replenish(grey, empty_kp, empty_w, max_features=self.tracking.max_features)
@@ -557,5 +563,6 @@ class EgoMotionRefiner(nn.Module):
             grey, keypoints, weights, meas.disparity, meas.variance, meas.valid,
             torch.zeros_like(meas.variance), eye.clone(),
             meas.disparity, meas.variance, meas.valid, eye.clone(), 0, 0, tuple(build_pyramid(grey, _TRACK_LEVELS)),
+            count_per_item(matched) if self.stereo.fill else None,
         )
         return out, state

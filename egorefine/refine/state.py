@@ -32,6 +32,9 @@ class RefinerState(NamedTuple):
         since_stereo: frames since stereo last ran (0 = it ran on ``frame``).
         pyramid: the tracker's image pyramid of ``image`` (levels of ``(B, 1, H_l, W_l)``), built once per frame
             and reused when tracking into the next one; None: built from ``image`` when needed.
+        matched: ``(B,)`` int64, the pixels the verification matcher itself (before any ``fill``) matched at the
+            last accepted verification: what the next one's match count is compared with to tell a failed stereo
+            pair (None: the prediction's valid count is used).
 
     Example:
         >>> from egorefine.data import render_sequence
@@ -62,6 +65,7 @@ class RefinerState(NamedTuple):
     frame: int
     since_stereo: int
     pyramid: tuple[torch.Tensor, ...] | None = None
+    matched: torch.Tensor | None = None
 
     def detach(self) -> RefinerState:
         """The same state with every tensor detached from the autograd graph: truncated backpropagation
