@@ -276,6 +276,30 @@ def _compiled_sad(grey_l: torch.Tensor, grey_r: torch.Tensor) -> bool:
     return use_compiled(grey_l, grey_r)
 
 
+def _textured_numpy(grey: np.ndarray, block_size: int, cap: float, threshold: float) -> np.ndarray:
+    """The texture check of the float path (``box_mean_same(|prefilter_xsobel|) >= threshold``) in numpy, the same
+    float32 operations in the same order, so the same decisions; ``(B, 1, H, W)`` float32 in, bool out."""
+    padded = np.pad(grey, ((0, 0), (0, 0), (1, 1), (1, 1)), mode="edge")
+    diff = padded[..., 2:] - padded[..., :-2]
+    gx = np.abs(np.clip(diff[..., :-2, :] + 2 * diff[..., 1:-1, :] + diff[..., 2:, :], -cap, cap))
+    r = block_size // 2
+    x = np.pad(gx, ((0, 0), (0, 0), (r, r), (r, r)), mode="edge")
+    for axis in (2, 3):  # box_sum_valid's shifted additions, rows then columns
+        n, out, offset, power, size = x.shape[axis], None, 0, x, 1
+        while True:
+            if block_size & size:
+                piece = np.take(power, range(offset, offset + n - block_size + 1), axis=axis)
+                out = piece if out is None else out + piece
+                offset += size
+            if size * 2 > block_size:
+                break
+            m = power.shape[axis]
+            power = np.take(power, range(0, m - size), axis=axis) + np.take(power, range(size, m), axis=axis)
+            size *= 2
+        x = out
+    return x / (block_size * block_size) >= np.float32(threshold)
+
+
 def _use_numba_sgm(grey_l: torch.Tensor, grey_r: torch.Tensor, cost: str, num: int, differentiable: bool) -> bool:
     """The compiled census + SGM path applies: :func:`~egorefine.core.use_compiled` and the kernel's limits (the
     census cost, the hard winner, at least 2 candidates)."""
@@ -416,10 +440,6 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
         return StereoOutput(*match_sad_int(grey_l.detach(), grey_r.detach(), max_disparity, min_disparity,
                                            block_size, prefilter_cap, scale,
                                            {**opts, "texture_threshold": texture_threshold}))
-    # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
-    texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
-    textured = texture >= texture_threshold
-
     parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     strip = _STRIP_ELEMENTS if grey_l.device.type == "cpu" else _GPU_STRIP_ELEMENTS
     if aggregation == "sgm":
@@ -429,10 +449,21 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
         p1 = (p1 if sgm_p1 is None else sgm_p1) * opts["scale"]
         p2 = (p2 if sgm_p2 is None else sgm_p2) * opts["scale"]
     if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
-        # CPU inference: census, SGM and selection compiled (the same float32 results as below)
-        parts.append(_sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size,
-                                                  census_window, p1, p2, sgm_paths, opts)[:3])
-    elif aggregation == "sgm":
+        # CPU inference: census, SGM and selection compiled (the same float32 results as below), then the texture
+        # check and the masking in numpy (no torch pass over the full maps)
+        disparity, valid, variance = _sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity,
+                                                                  block_size, census_window, p1, p2, sgm_paths,
+                                                                  opts)[:3]
+        d, v, var = disparity.numpy(), valid.numpy(), variance.numpy()
+        np.logical_and(v, _textured_numpy(grey_l.detach().numpy(), block_size, prefilter_cap, texture_threshold),
+                       out=v)
+        d[~v] = 0.0
+        var[~v] = INVALID_VARIANCE
+        return StereoOutput(disparity, valid, variance)
+    # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
+    texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
+    textured = texture >= texture_threshold
+    if aggregation == "sgm":
         feat = _Features(grey_l, grey_r, cost, block_size, max_disparity, census_window, prefilter, prefilter_cap)
         vol = strip_volume(feat, 0, h, min_disparity)
         raw = vol if opts["max_raw_cost"] is not None else None  # (sgm_aggregate does not write into its input)

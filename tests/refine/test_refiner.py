@@ -405,12 +405,12 @@ _NO_PASS_OVER_THE_MAP = {
     ("options", "seq_name"),
     [({"stereo": StereoOptions(fill=False)}, "small_seq"),
      ({"stereo": StereoOptions(fill=False), "local_search": 2, "measure_holes": True}, "ideal_seq"),
-     pytest.param({}, "small_seq", marks=pytest.mark.xfail(
-         strict=True, reason="Kalman mode's default SGM fill: after the compiled census + SGM kernel its texture "
-         "check and output masking are torch ops over full maps; issue 17")),
-     pytest.param({"local_search": 2, "measure_holes": True}, "small_seq", marks=pytest.mark.xfail(
-         strict=True, reason="on realistic images a step of local search / hole measurement still runs torch ops "
-         "over full maps (where, mul, fill_, ...); issue 17"))],
+     ({}, "small_seq"),  # Kalman mode's default: the box matcher filled from census + SGM
+     ({"local_search": 2, "measure_holes": True}, "small_seq"),
+     pytest.param({"stereo": StereoOptions(fill=False), "local_search": 2, "measure_holes": True}, "small_seq",
+                  marks=pytest.mark.xfail(strict=True, reason="box matcher alone on realistic images: a step of "
+                                          "local search / hole measurement still runs torch ops over full maps "
+                                          "(where, mul, fill_, ...); issue 17"))],
 )
 def test_cpu_loop_runs_no_torch_pass_over_full_maps(request, options, seq_name):
     """On float32 CPU tensors every full-image step of a frame runs in compiled kernels or numpy: a torch op over a
