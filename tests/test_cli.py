@@ -160,6 +160,19 @@ def test_run_writes_every_output(layout, run_out):
     assert metrics["ate_rmse_m"] < 0.1 * metrics["path_length_m"]
 
 
+def test_run_no_fill_gives_the_box_matchers_sparser_maps(layout, run_out, tmp_path):
+    """Kalman mode fills the box matcher's holes from census + SGM unless --no-fill: the default run's valid masks
+    hold more pixels, and run.json records the choice."""
+    root, _ = layout
+    out = tmp_path / "nofill"
+    assert main(_run_argv(root, out, "--no-fill")) == 0
+    assert json.loads((out / "run.json").read_text())["settings"]["no_fill"] is True
+    assert json.loads((run_out / "run.json").read_text())["settings"]["no_fill"] is False
+    count = lambda folder: sum(int((cv2.imread(str(p), cv2.IMREAD_UNCHANGED) > 0).sum())  # noqa: E731
+                               for p in sorted((folder / "valid").iterdir()))
+    assert count(run_out) > count(out)
+
+
 def test_run_refuses_an_output_folder_with_results(layout, run_out, tmp_path, capsys):
     root, _ = layout
     before = (run_out / "run.json").read_bytes()

@@ -201,6 +201,9 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--matcher", default="sad", choices=_MATCHERS,
                      help="stereo cost (SAD on x-Sobel, ZNCC or census) and aggregation (box window, or +sgm for "
                           "semi-global)")
+    run.add_argument("--no-fill", action="store_true",
+                     help="Kalman mode with a box matcher: do not fill its holes from census + SGM on verification "
+                          "frames (faster, sparser; the filled pixels are less accurate than the box matcher's)")
     run.add_argument("--motion", default="exact", choices=["linear", "robust", "exact"],
                      help="ego-motion solve: the paper's linear eq. 3, robust-weighted, or exact SE(3) reprojection")
     run.add_argument("--format", default="png16", choices=["png16", "npy", "pfm"],

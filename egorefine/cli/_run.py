@@ -141,7 +141,8 @@ def _run(args: argparse.Namespace) -> int:
     cost, _, aggregation = args.matcher.partition("+")
     refiner = EgoMotionRefiner(max_disparity=args.max_disparity, verify_every=args.verify_every, fusion=args.fusion,
                                motion_method=args.motion,
-                               stereo=StereoOptions(cost=cost, aggregation=aggregation or "box"))
+                               stereo=StereoOptions(cost=cost, aggregation=aggregation or "box",
+                                                    fill=False if args.no_fill else None))
     K = rec.K.to(device=device, dtype=torch.float32)[None]
     baseline = torch.tensor([float(rec.baseline)], device=device)
     t_open = time.perf_counter() - t_start
