@@ -29,7 +29,7 @@ def _figure(save, *args, **kwargs) -> Path | None:
 def _demo(args: argparse.Namespace) -> int:
     from ..data import render_sequence
     from ..metrics import compose_motions, distinct_levels, evaluate_disparity, evaluate_trajectory
-    from ..refine import StereoOptions, refine_sequence
+    from ..refine import EgoMotionRefiner, StereoOptions, refine_sequence
     from ..stereo import block_matching
     from ..viz import save_maps_figure, save_row_figure, save_trajectory_figure
 
@@ -74,8 +74,10 @@ def _demo(args: argparse.Namespace) -> int:
                               max_disparity=args.max_disparity,
                               show_progress=not args.quiet)
         ms = (time.perf_counter() - t0) * 1e3 / T
-        stereo = "integer" if not subpixel else "sub-pixel"
-        name = f"{fusion} mode ({stereo} stereo, {motion} motion), verify every {args.verify_every}"
+        stereo = ("integer" if not subpixel else "sub-pixel") + " stereo"
+        if EgoMotionRefiner(fusion=fusion, stereo=StereoOptions(subpixel=subpixel)).stereo.fill:
+            stereo += " + SGM in its holes"
+        name = f"{fusion} mode ({stereo}, {motion} motion), verify every {args.verify_every}"
         results[name] = (score(res.disparity[:, 0], res.valid[:, 0]), ms, int(res.stereo_ran.sum()),
                          _nan_where(res.disparity[:, 0, 0], res.valid[:, 0, 0]), res.motion[:, 0])
 
