@@ -492,8 +492,8 @@ class EgoMotionRefiner(nn.Module):
             # (with a fill, SGM matches even a swapped pair: the first matcher's count, against its own last one)
             reference = pred.valid if state.matched is None else state.matched
             rejected = stereo_failed(matched, reference) & ok
-            count = count_per_item(matched)
-            matched_count = count if state.matched is None else torch.where(rejected, state.matched, count)
+            matched_count = None if state.matched is None else torch.where(rejected, state.matched,
+                                                                            count_per_item(matched))
             reset = disagreeing_regions(pred.disparity, pred.valid, meas.disparity, meas.valid)
             status = status | flag(rejected, Status.MEASUREMENT_REJECTED)
             reset_items = (count_per_item(reset) > 0) & ~rejected  # (a rejected item keeps its whole prediction)

@@ -141,3 +141,22 @@ def test_the_filled_loop_is_denser_than_its_box_matcher_and_stays_accurate():
     (epe, density), (box_epe, box_density) = scores[True], scores[False]
     assert density > box_density + 0.2, scores
     assert epe < 0.5 and epe < 3 * box_epe, scores
+
+
+def test_the_box_matchers_own_count_is_carried_only_with_a_fill():
+    """With a fill the failure check compares the box matcher's count with its count at the last accepted
+    verification (RefinerState.matched); without one it stays None and the prediction's validity is the reference."""
+    from egorefine.stereo import match_stereo
+
+    seq = render_sequence(num_frames=3, height=60, width=80, seed=2)
+    K, b = seq.K[None], torch.tensor([seq.baseline])
+    for fusion, filled in (("kalman", True), ("paper", False)):
+        refiner = EgoMotionRefiner(max_disparity=16, verify_every=1, fusion=fusion)
+        state = None
+        for t in range(3):
+            _, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
+        if filled:
+            box = match_stereo(seq.left[2:3], seq.right[2:3], 16)
+            assert state.matched.tolist() == [int(box.valid.sum())]
+        else:
+            assert state.matched is None
