@@ -99,25 +99,33 @@ def _popcount(x: torch.Tensor) -> torch.Tensor:
 
 
 def box_sum_valid(x: torch.Tensor, k: int, dim: int) -> torch.Tensor:
-    """Sum of ``k`` consecutive entries along ``dim`` ('valid' mode: length n - k + 1).
+    """Sum of ``k`` consecutive entries along ``dim`` (negative: counted from the end; 'valid' mode: length
+    n - k + 1).
 
-    Done with about ``2 log2(k)`` shifted additions (exact; no cumulative-sum drift).
+    Done with about ``2 log2(k)`` shifted additions (exact; no cumulative-sum drift). Slicing only, so a numpy
+    array gives the same float32 sums in the same order (the compiled paths' numpy post-processing uses it).
     """
+    if dim >= 0:
+        raise ValueError(f"box_sum_valid: dim must be negative, got {dim}")
+    tail = (slice(None),) * (-dim - 1)
+
+    def part(a, start: int, length: int):
+        return a[(Ellipsis, slice(start, start + length)) + tail]
+
     n = x.shape[dim]
-    out: torch.Tensor | None = None
+    out = None
     offset = 0
     power = x  # sums of `size` consecutive entries, length n - size + 1
     size = 1
     while True:
         if k & size:
-            length = n - k + 1
-            piece = power.narrow(dim, offset, length)
+            piece = part(power, offset, n - k + 1)
             out = piece if out is None else out + piece
             offset += size
         if size * 2 > k:
             break
         m = power.shape[dim]
-        power = power.narrow(dim, 0, m - size) + power.narrow(dim, size, m - size)
+        power = part(power, 0, m - size) + part(power, size, m - size)
         size *= 2
     return out if out is not None else x
 

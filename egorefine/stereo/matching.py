@@ -35,7 +35,7 @@ from ..core import (
 )
 from ..core.dispatch import needs_grad
 from . import _sad_numba, _sgm_numba
-from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
+from .cost import COSTS, INVALID_COST, _Features, box_mean_same, box_sum_valid, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
 from .speckle import remove_speckles
@@ -284,20 +284,8 @@ def _textured_numpy(grey: np.ndarray, block_size: int, cap: float, threshold: fl
     gx = np.abs(np.clip(diff[..., :-2, :] + 2 * diff[..., 1:-1, :] + diff[..., 2:, :], -cap, cap))
     r = block_size // 2
     x = np.pad(gx, ((0, 0), (0, 0), (r, r), (r, r)), mode="edge")
-    for axis in (2, 3):  # box_sum_valid's shifted additions, rows then columns
-        n, out, offset, power, size = x.shape[axis], None, 0, x, 1
-        while True:
-            if block_size & size:
-                piece = np.take(power, range(offset, offset + n - block_size + 1), axis=axis)
-                out = piece if out is None else out + piece
-                offset += size
-            if size * 2 > block_size:
-                break
-            m = power.shape[axis]
-            power = np.take(power, range(0, m - size), axis=axis) + np.take(power, range(size, m), axis=axis)
-            size *= 2
-        x = out
-    return x / (block_size * block_size) >= np.float32(threshold)
+    return box_sum_valid(box_sum_valid(x, block_size, -2), block_size, -1) / (block_size * block_size) >= \
+        np.float32(threshold)
 
 
 def _use_numba_sgm(grey_l: torch.Tensor, grey_r: torch.Tensor, cost: str, num: int, differentiable: bool) -> bool:

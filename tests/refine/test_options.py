@@ -124,7 +124,8 @@ def test_kalman_mode_fills_the_box_matchers_holes_from_sgm():
 
 def test_the_filled_loop_is_denser_than_its_box_matcher_and_stays_accurate():
     """On realistic imaging the filled Kalman loop marks more pixels valid than the box-only one, with an error
-    still well below a pixel (bounds set on seed 5; this seed 3)."""
+    still well below a pixel. Measured here (seed 3): 0.259 px at 0.981 density against 0.201 at 0.697; seed 5
+    gives 0.282 at 0.972 against 0.244 at 0.594."""
     seq = render_sequence(num_frames=6, height=120, width=160, seed=3)
     K, b = seq.K[None], torch.tensor([seq.baseline])
     scores = {}

@@ -192,3 +192,23 @@ def test_raw_cost_check_rejects_what_matches_nothing():
     # a textured plane keeps its matches
     pl, pr, _ = planar_pair(1, 40, 72, seed=3)
     assert match_stereo(pl, pr, 16, census_max_distance=0.35, **kw).valid.float().mean() > 0.7
+
+
+@pytest.mark.parametrize("block", [1, 5, 9])
+def test_numpy_texture_check_equals_the_torch_one(block):
+    """The compiled SGM path's texture check (numpy) makes the float path's decisions pixel for pixel, also at
+    values on the threshold (an image of 1/255 steps, as 8-bit input gives)."""
+    from egorefine.stereo.cost import box_mean_same, box_sum_valid, prefilter_xsobel
+    from egorefine.stereo.matching import _textured_numpy
+
+    g = torch.Generator().manual_seed(block)
+    grey = (torch.rand(2, 1, 23, 31, generator=g) * 8).round() / 255.0
+    grey[0, :, :, :10] = 0.5  # a flat region: texture 0
+    cap, threshold = 31.0 / 255.0, 0.004
+    torch_texture = box_mean_same(prefilter_xsobel(grey, cap).abs(), block)
+    assert torch.equal(torch.from_numpy(_textured_numpy(grey.numpy(), block, cap, threshold)),
+                       torch_texture >= threshold)
+    x = torch.rand(1, 1, 9, 12, generator=g)
+    for dim in (-2, -1):
+        assert torch.equal(torch.from_numpy(box_sum_valid(x.numpy(), block, dim)), box_sum_valid(x, block, dim))
+    assert (torch_texture >= threshold).any() and not (torch_texture[0, :, :, :8 - block // 2] >= threshold).any()
