@@ -3,7 +3,7 @@
 from .correct import CorrectDisparity, Correction, correct_disparity
 from .cracks import close_cracks
 from .health import Status
-from .learning import CONFIDENCE_INPUTS, ConfidenceNet
+from .learning import NET_INPUTS, ConfidenceNet, CorrectionNet, measurement_features
 from .options import (
     CorrectionOptions,
     PredictionOptions,
@@ -19,7 +19,9 @@ from .sequence import SequenceResult, refine_sequence
 __all__ = [
     "Status",
     "ConfidenceNet",
-    "CONFIDENCE_INPUTS",
+    "CorrectionNet",
+    "NET_INPUTS",
+    "measurement_features",
     "CorrectDisparity",
     "Correction",
     "correct_disparity",

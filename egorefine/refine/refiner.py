@@ -55,6 +55,7 @@ from .health import (
     stereo_failed,
     tracking_collapsed,
 )
+from .learning import measurement_features
 from .options import (
     CorrectionOptions,
     PredictionOptions,
@@ -84,7 +85,19 @@ _HOLE_SHARE = 0.5
 _GATE_SOFTNESS = 0.1
 # a confidence network's variance scale is clamped to this range (a documented clamp: never 0, never Inf)
 _SCALE_RANGE = (1e-3, 1e3)
+# a correction network's offset is clamped to this many px either way (a documented clamp)
+_OFFSET_BOUND = 2.0
 
+
+def _net_output(net: nn.Module, x: torch.Tensor, meas: StereoOutput, name: str) -> torch.Tensor:
+    """``net(x)``, checked: a tensor of the measurement's shape (``ShapeError``), finite (``ValueRangeError``)."""
+    out = net(x)
+    if not isinstance(out, torch.Tensor) or out.shape != meas.disparity.shape:
+        got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        raise ShapeError(f"{name}: expected an output of shape {tuple(meas.disparity.shape)} (B, 1, H, W), got {got}")
+    if not bool(torch.isfinite(out.detach()).all()):
+        raise ValueRangeError(f"{name}: its output holds NaN or Inf")
+    return out.to(meas.disparity.dtype)
 
 
 @torch.compiler.disable  # not traced: dynamo would unroll SGM's scanline recursion, which has no gradient anyway
@@ -140,11 +153,15 @@ class EgoMotionRefiner(nn.Module):
             sigmoid``), ``log_gate``, ``log_process_noise``, ``log_noise_scale`` (a factor of the measurement
             variance, 1 to start) and ``log_temperature`` (the soft matcher's). Stored unconstrained, so that no
             optimiser step can leave a range; a non-finite parameter raises ``ValueRangeError``.
-        confidence_net: an ``nn.Module`` mapping ``(B, 3, H, W)`` (grey left image, measured disparity divided by
-            ``max_disparity``, measurement validity) to a positive ``(B, 1, H, W)`` scale of the measurement
-            variance (:class:`~egorefine.refine.ConfidenceNet`; clamped to ``[1e-3, 1e3]``; a wrong shape raises
-            ``ShapeError``, NaN or Inf ``ValueRangeError``). It acts on every fused measurement; in paper mode,
-            whose gain is fixed, only on the carried variance.
+        confidence_net: an ``nn.Module`` mapping the ``(B, NET_INPUTS, H, W)`` features of a measurement
+            (:func:`~egorefine.refine.measurement_features`: grey left image, disparity, validity, fill, sub-pixel
+            phase) to a positive ``(B, 1, H, W)`` scale of its variance (:class:`~egorefine.refine.ConfidenceNet`;
+            clamped to ``[1e-3, 1e3]``). It acts on every fused measurement; in paper mode, whose gain is fixed,
+            only on the carried variance.
+        correction_net: an ``nn.Module`` mapping the same features to a ``(B, 1, H, W)`` offset in px added to each
+            stereo measurement (frame 0 and every verification) where it is valid, before fusion
+            (:class:`~egorefine.refine.CorrectionNet`; clamped to ``[-2, 2]`` px). For either network a wrong
+            output shape raises ``ShapeError``, NaN or Inf ``ValueRangeError``.
         **legacy: the flat keywords of earlier releases (``max_features=``, ``local_search=``, ...; see
             :data:`~egorefine.refine.options.LEGACY_KEYWORDS`): still accepted for one release, with a
             ``DeprecationWarning`` naming the group to use.
@@ -182,6 +199,7 @@ class EgoMotionRefiner(nn.Module):
         differentiable: bool = False,
         learnable: bool = False,
         confidence_net: nn.Module | None = None,
+        correction_net: nn.Module | None = None,
         **legacy,
     ) -> None:
         super().__init__()
@@ -197,8 +215,9 @@ class EgoMotionRefiner(nn.Module):
         if int(max_disparity) <= stereo.min_disparity:
             raise ValueRangeError(
                 f"max_disparity: must exceed min_disparity={stereo.min_disparity}, got {max_disparity}")
-        if confidence_net is not None and not isinstance(confidence_net, nn.Module):
-            raise ValueRangeError(f"confidence_net: expected an nn.Module or None, got {type(confidence_net).__name__}")
+        for name, net in (("confidence_net", confidence_net), ("correction_net", correction_net)):
+            if net is not None and not isinstance(net, nn.Module):
+                raise ValueRangeError(f"{name}: expected an nn.Module or None, got {type(net).__name__}")
         self.differentiable = bool(differentiable)
         # the differentiable preset: each of its parts unless the caller chose otherwise
         if self.differentiable:
@@ -236,6 +255,7 @@ class EgoMotionRefiner(nn.Module):
             for name in ("gate", "process_noise", "noise_scale", "temperature"):
                 setattr(self, f"log_{name}", nn.Parameter(torch.tensor(fixed[name]).log()))
         self.confidence_net = confidence_net
+        self.correction_net = correction_net
 
     # -- the settings learning may change ----------------------------------------------------------------------
     def _value(self, name: str) -> float | torch.Tensor:
@@ -275,7 +295,14 @@ class EgoMotionRefiner(nn.Module):
         ``exp(log_temperature)``."""
         return self._value("temperature")
 
-    def _variance_scale(self, grey: torch.Tensor, meas: StereoOutput) -> torch.Tensor | float:
+    def _features(self, grey: torch.Tensor, meas: StereoOutput, matched: torch.Tensor | None) -> torch.Tensor:
+        """The networks' input for one measurement (:func:`~egorefine.refine.measurement_features`); ``matched``:
+        the first matcher's validity where a fill ran (the rest of ``meas.valid`` is the fill's), else None."""
+        filled = meas.valid & ~matched if matched is not None and self.stereo.fill else None
+        return measurement_features(grey, meas.disparity, meas.valid, filled, self.max_disparity)
+
+    def _variance_scale(self, grey: torch.Tensor, meas: StereoOutput,
+                        matched: torch.Tensor | None) -> torch.Tensor | float:
         """The factor of a measurement's variance before fusion: ``noise_scale`` times the confidence network's
         per-pixel scale (clamped to ``_SCALE_RANGE``)."""
         scale = self.noise_scale
@@ -283,15 +310,14 @@ class EgoMotionRefiner(nn.Module):
             scale = scale.to(grey.dtype)
         if self.confidence_net is None:
             return scale
-        x = torch.cat([grey, meas.disparity.to(grey.dtype) / self.max_disparity, meas.valid.to(grey.dtype)], dim=1)
-        net = self.confidence_net(x)
-        if not isinstance(net, torch.Tensor) or net.shape != meas.disparity.shape:
-            got = tuple(net.shape) if isinstance(net, torch.Tensor) else type(net).__name__
-            raise ShapeError(f"confidence_net: expected an output of shape {tuple(meas.disparity.shape)} "
-                             f"(B, 1, H, W), got {got}")
-        if not bool(torch.isfinite(net.detach()).all()):
-            raise ValueRangeError("confidence_net: its output holds NaN or Inf")
-        return net.to(grey.dtype).clamp(*_SCALE_RANGE) * scale
+        net = _net_output(self.confidence_net, self._features(grey, meas, matched), meas, "confidence_net")
+        return net.clamp(*_SCALE_RANGE) * scale
+
+    def _corrected(self, grey: torch.Tensor, meas: StereoOutput, matched: torch.Tensor) -> StereoOutput:
+        """The measurement with the correction network's offset (clamped to ``_OFFSET_BOUND`` px) where valid."""
+        net = _net_output(self.correction_net, self._features(grey, meas, matched), meas, "correction_net")
+        offset = net.clamp(-_OFFSET_BOUND, _OFFSET_BOUND) * meas.valid.to(net.dtype)
+        return meas._replace(disparity=meas.disparity + offset)
 
     # -- checks ------------------------------------------------------------------------------------------------
     def _check_inputs(
@@ -342,7 +368,7 @@ class EgoMotionRefiner(nn.Module):
         return bool(trouble.any())
 
     def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int,
-                why: str = "verification") -> tuple[StereoOutput, torch.Tensor]:
+                why: str = "verification", corrected: bool = True) -> tuple[StereoOutput, torch.Tensor]:
         """The verification measurement, and the validity of its first matcher alone: the health signal (a
         swapped or blank pair still gives SGM matches in the fill, but no longer the box matcher's)."""
         if right is None:
@@ -352,7 +378,40 @@ class EgoMotionRefiner(nn.Module):
         matched = out.valid
         if self.stereo.fill:  # the holes of a local matcher filled where census + SGM matches
             out = fill_invalid(out, _fill_matcher(left, right, self.max_disparity, self.stereo.min_disparity))
+        if corrected and self.correction_net is not None:
+            out = self._corrected(left, out, matched)
         return out, matched
+
+    def measure(self, left: torch.Tensor, right: torch.Tensor) -> tuple[StereoOutput, torch.Tensor]:
+        """The verification measurement of one stereo pair before the correction network, and its network input.
+
+        What a verification frame matches (the matcher of ``stereo``, the fill where it is on) and the
+        :func:`~egorefine.refine.measurement_features` the networks see for it. The matcher has no learnable
+        parts in the default configuration, so a correction network can be fitted to truth on measurements
+        computed once: ``net(features)`` should approach ``truth - measurement.disparity`` where
+        ``measurement.valid`` (``benchmarks/learning.py`` does this before training through the loop).
+
+        Args:
+            left: ``(B, 1|3, H, W)`` left image in [0, 1].
+            right: ``(B, 1|3, H, W)`` right image.
+
+        Returns:
+            ``(StereoOutput, features)``: disparity, validity and variance ``(B, 1, H, W)``; features ``(B,
+            NET_INPUTS, H, W)``.
+
+        Example:
+            >>> from egorefine.data import render_sequence
+            >>> seq = render_sequence(num_frames=1, height=48, width=64)
+            >>> refiner = EgoMotionRefiner(max_disparity=16, fusion="kalman")
+            >>> meas, x = refiner.measure(seq.left, seq.right)
+            >>> meas.disparity.shape, x.shape
+            (torch.Size([1, 1, 48, 64]), torch.Size([1, 6, 48, 64]))
+        """
+        dims = check_image(left, "left")
+        check_image(right, "right", dims)
+        grey, right = to_grey(left), to_grey(right)
+        meas, matched = self._stereo(grey, right, 0, corrected=False)
+        return meas, self._features(grey, meas, matched)
 
     def _matcher(self) -> dict:
         """The matcher's keyword arguments (the soft-argmin's temperature read at call time: it may learn)."""
@@ -361,7 +420,8 @@ class EgoMotionRefiner(nn.Module):
             options.update(differentiable=True, temperature=self.temperature)
         return options
 
-    def _correct(self, grey, pred, meas, outlier_count: torch.Tensor, verification: bool):
+    def _correct(self, grey, pred, meas, outlier_count: torch.Tensor, verification: bool,
+                 matched: torch.Tensor | None = None):
         """Step 4: fuse a measurement (full stereo, or the residual search) into the prediction by ``fusion``.
 
         Kalman mode adds the prediction's depth-edge variance (``edge_aware``); ``max_unverified_variance`` applies
@@ -372,7 +432,7 @@ class EgoMotionRefiner(nn.Module):
             pred_var = edge_variance(pred.disparity, pred.valid, self.correction.edge_kernel, base=pred_var)
         meas_var = meas.variance
         if self.learnable or self.confidence_net is not None:
-            meas_var = meas_var * self._variance_scale(grey, meas)
+            meas_var = meas_var * self._variance_scale(grey, meas, matched)
         return correct_disparity(
             pred.disparity, meas.disparity, meas.valid, fusion=self.fusion, gate=self.gate, gain=self.gain,
             predicted_variance=pred_var, measured_variance=meas_var, predicted_valid=pred.valid,
@@ -485,7 +545,7 @@ class EgoMotionRefiner(nn.Module):
             meas, matched = self._stereo(grey, right, frame, why)
             if frame % self.verify_every != 0:
                 status = status | int(Status.STEREO_FORCED)
-            cor = self._correct(grey, pred, meas, state.outlier_count, verification=True)
+            cor = self._correct(grey, pred, meas, state.outlier_count, verification=True, matched=matched)
             disparity, variance, valid, outliers = cor.disparity, cor.variance, cor.valid, cor.outlier_count
             # Stereo that failed wholesale (swapped, black or noise images) is rejected: the prediction stays. Regions
             # where the two disagree as a whole (an occluder, a wrong motion) take the measurement.

@@ -18,7 +18,7 @@ from egorefine.data import render_sequence
 from egorefine.features import detect, track
 from egorefine.geometry import make_intrinsics
 from egorefine.motion import solve_ego_motion
-from egorefine.refine import EgoMotionRefiner, correct_disparity, predict_disparity
+from egorefine.refine import NET_INPUTS, EgoMotionRefiner, correct_disparity, predict_disparity
 from egorefine.refine.correct import edge_variance
 from egorefine.stereo import match_stereo
 
@@ -252,11 +252,15 @@ def test_loop_gradcheck_default_options(seq, fusion, verify_every):
 
 @pytest.mark.parametrize("fusion", [pytest.param("paper", marks=pytest.mark.slow), "kalman"])
 def test_loop_gradcheck_learnable_parameters(seq, fusion):
-    """The differentiable preset with learnable parameters: d(frame 2 at a verification) / d(every parameter)."""
+    """The differentiable preset with learnable parameters and both networks: d(frame 2 at a verification) /
+    d(every parameter)."""
     torch.manual_seed(0)
-    net = torch.nn.Sequential(torch.nn.Conv2d(3, 1, 1), torch.nn.Softplus())  # (few weights: few probes)
+    net = torch.nn.Sequential(torch.nn.Conv2d(NET_INPUTS, 1, 1), torch.nn.Softplus())  # (few weights: few probes)
+    offset = torch.nn.Conv2d(NET_INPUTS, 1, 1)
+    with torch.no_grad():
+        offset.weight.mul_(0.1)
     refiner = EgoMotionRefiner(verify_every=2, fusion=fusion, differentiable=True, learnable=True,
-                               confidence_net=net, **SMALL).double()
+                               confidence_net=net, correction_net=offset, **SMALL).double()
     names = [n for n, _ in refiner.named_parameters()]
     assert {"gain_logit", "log_gate", "log_process_noise", "log_noise_scale", "log_temperature"} <= set(names)
     values = [p.detach().clone() for _, p in refiner.named_parameters()]

@@ -1,4 +1,4 @@
-"""Learnable parts of the refiner: parameters, the confidence network, training steps, bad inputs."""
+"""Learnable parts of the refiner: parameters, the confidence and correction networks, training steps, bad inputs."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from torch import nn
 
 from egorefine.core import ShapeError, ValueRangeError
 from egorefine.data import render_sequence
-from egorefine.refine import ConfidenceNet, EgoMotionRefiner
+from egorefine.refine import NET_INPUTS, ConfidenceNet, CorrectionNet, EgoMotionRefiner, measurement_features
 
 SMALL = dict(max_disparity=16, max_features=64, min_tracks=16)
 
@@ -55,7 +55,7 @@ def test_learnable_parameters_are_registered_and_start_at_the_defaults():
 def test_untrained_learnable_refiner_with_a_confidence_net_gives_the_defaults_outputs(seq):
     want, _ = _run(EgoMotionRefiner(fusion="kalman", verify_every=2, **SMALL), seq)
     got, _ = _run(EgoMotionRefiner(fusion="kalman", verify_every=2, learnable=True, confidence_net=ConfidenceNet(),
-                                   **SMALL), seq)
+                                   correction_net=CorrectionNet(), **SMALL), seq)
     for a, e in zip(got, want, strict=True):
         assert torch.equal(a.valid, e.valid)
         torch.testing.assert_close(a.disparity, e.disparity, atol=1e-5, rtol=0)
@@ -108,6 +108,16 @@ class _NaN(nn.Module):
         return torch.full_like(x[:, :1], float("nan"))
 
 
+class _Constant(nn.Module):
+    def __init__(self, value):
+        super().__init__()
+        self.value = value
+
+    def forward(self, x):
+        assert x.shape[1] == NET_INPUTS
+        return torch.full_like(x[:, :1], self.value)
+
+
 class _Negative(nn.Module):
     def forward(self, x):
         return -torch.ones_like(x[:, :1])
@@ -118,6 +128,53 @@ def test_a_bad_confidence_net_raises_a_typed_error(seq, net, error):
     refiner = EgoMotionRefiner(fusion="kalman", verify_every=1, confidence_net=net, **SMALL)
     with pytest.raises(error, match="confidence_net"):
         _run(refiner, seq, frames=2)
+
+
+@pytest.mark.parametrize("net, error", [(_Shape(), ShapeError), (_NaN(), ValueRangeError)])
+def test_a_bad_correction_net_raises_a_typed_error(seq, net, error):
+    refiner = EgoMotionRefiner(fusion="kalman", verify_every=1, correction_net=net, **SMALL)
+    with pytest.raises(error, match="correction_net"):
+        _run(refiner, seq, frames=1)
+
+
+@pytest.mark.parametrize("value, shift", [(0.25, 0.25), (-0.5, -0.5), (7.0, 2.0)])  # 7 px: clamped to 2
+def test_the_correction_net_offsets_each_valid_measurement(seq, value, shift):
+    plain, _ = _run(EgoMotionRefiner(fusion="kalman", **SMALL), seq, frames=1)
+    got, _ = _run(EgoMotionRefiner(fusion="kalman", correction_net=_Constant(value), **SMALL), seq, frames=1)
+    assert torch.equal(got[0].valid, plain[0].valid)
+    m = plain[0].valid
+    torch.testing.assert_close(got[0].disparity[m], plain[0].disparity[m] + shift)
+    torch.testing.assert_close(got[0].disparity[~m], plain[0].disparity[~m])
+
+
+def test_gradient_reaches_the_correction_net_from_a_predicted_frame(seq):
+    torch.manual_seed(0)
+    net = CorrectionNet(width=4, layers=2)
+    refiner = EgoMotionRefiner(fusion="kalman", verify_every=5, correction_net=net, **SMALL)
+    outs, _ = _run(refiner, seq, frames=3, grad=True)
+    assert not outs[2].stereo_ran
+    outs[2].disparity[outs[2].valid].sum().backward()
+    grad = net.body[-1].bias.grad  # d(sum of predicted disparities)/d(offset): about the count of valid pixels
+    assert grad is not None and torch.isfinite(grad).all()
+    assert float(grad) > 0.5 * int(outs[2].valid.sum())
+
+
+def test_measurement_features_channels():
+    grey = torch.rand(1, 1, 3, 4)
+    d = torch.tensor([[0.0, 3.25, 8.5, 10.0]]).expand(3, 4)[None, None]
+    valid = d > 0
+    filled = torch.zeros_like(valid)
+    filled[..., 0, 1] = True
+    x = measurement_features(grey, d, valid, filled, 16)
+    assert x.shape == (1, NET_INPUTS, 3, 4)
+    torch.testing.assert_close(x[:, 0:1], grey)
+    torch.testing.assert_close(x[0, 1, 0], torch.tensor([0.0, 3.25, 8.5, 10.0]) / 16)
+    torch.testing.assert_close(x[0, 2, 0], torch.tensor([0.0, 1.0, 1.0, 1.0]))
+    torch.testing.assert_close(x[0, 3], filled[0, 0].float())
+    torch.testing.assert_close(x[0, 4, 0], torch.tensor([0.0, 0.0, -1.0, 1.0]), atol=1e-5, rtol=0)  # cos 2 pi d
+    torch.testing.assert_close(x[0, 5, 0], torch.tensor([0.0, 1.0, 0.0, 0.0]), atol=1e-5, rtol=0)  # sin 2 pi d
+    with pytest.raises(ShapeError):
+        CorrectionNet()(x[:, :3])
 
 
 def test_a_negative_scale_is_clamped_never_nan(seq):
@@ -132,6 +189,10 @@ def test_bad_learnable_settings_raise(seq):
         EgoMotionRefiner(learnable=True, process_noise=0.0)
     with pytest.raises(ValueRangeError, match="confidence_net"):
         EgoMotionRefiner(confidence_net=lambda x: x)
+    with pytest.raises(ValueRangeError, match="correction_net"):
+        EgoMotionRefiner(correction_net=lambda x: x)
+    with pytest.raises(ValueRangeError, match="bound"):
+        CorrectionNet(bound=0.0)
     with pytest.raises(ValueRangeError, match="gate_softness"):
         EgoMotionRefiner(gate_softness=-1.0)
     refiner = EgoMotionRefiner(learnable=True, fusion="kalman", verify_every=1, **SMALL)
