@@ -297,8 +297,8 @@ class EgoMotionRefiner(nn.Module):
 
     def _features(self, grey: torch.Tensor, meas: StereoOutput, matched: torch.Tensor | None) -> torch.Tensor:
         """The networks' input for one measurement (:func:`~egorefine.refine.measurement_features`); ``matched``:
-        the first matcher's validity where a fill ran (the rest of ``meas.valid`` is the fill's), else None."""
-        filled = meas.valid & ~matched if matched is not None and self.stereo.fill else None
+        the first matcher's validity (the rest of ``meas.valid`` is the fill's), or None (no such split)."""
+        filled = None if matched is None else meas.valid & ~matched
         return measurement_features(grey, meas.disparity, meas.valid, filled, self.max_disparity)
 
     def _variance_scale(self, grey: torch.Tensor, meas: StereoOutput,
