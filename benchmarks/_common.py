@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import statistics
 import time
 from collections.abc import Callable
@@ -22,8 +21,9 @@ from pathlib import Path
 # is within noise of the best for all of them. On a machine that is oversubscribed, PASSIVE is the safer
 # choice; the setting in force is stored with every result.
 import cv2
-import numpy as np
 import torch
+
+from egorefine.core import machine_info as core_machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -36,21 +36,8 @@ def omp_setting() -> str:
 
 
 def machine_info() -> dict:
-    """Versions and machine facts stored beside every result."""
-    return {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "opencv": cv2.__version__,
-        "opencv_threads": cv2.getNumThreads(),
-        "numpy": np.__version__,
-        "omp_wait_policy": omp_setting(),
-        "cpus": os.cpu_count(),
-        "cuda": torch.cuda.is_available(),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-    }
+    """The library's machine facts (:func:`egorefine.core.machine_info`) plus the wait policy and the date."""
+    return {**core_machine_info(), "omp_wait_policy": omp_setting(), "date": time.strftime("%Y-%m-%d %H:%M:%S")}
 
 
 def set_threads(n: int) -> None:

@@ -4,7 +4,8 @@
 refiner against its exact ground truth and draws pictures. ``egorefine run`` refines a recorded sequence
 (image folders with a calibration file, KITTI raw, KITTI odometry, EuRoC) and writes per-frame disparity, valid
 mask, confidence and preview files plus the trajectory in TUM and KITTI formats. ``egorefine eval`` scores
-disparity maps and trajectories against truth.
+disparity maps and trajectories against truth. ``egorefine info`` prints the processor, library versions and
+thread counts (float results differ between CPUs and thread counts: put it beside a bug report).
 
 Bad input (a missing file, a calibration that does not parse, too few frames, an output folder that already holds
 results) ends with one line ``egorefine <command>: error: ...`` on stderr and exit status 2; ``--debug`` shows the
@@ -17,7 +18,7 @@ import argparse
 import sys
 
 from .. import __version__
-from ..core import EgorefineError
+from ..core import EgorefineError, machine_info
 
 # The parser and main() live here, the work of each command in a private module of its own: _demo, _run (with the
 # deprecated folder command), _eval; _shared holds what they share.
@@ -38,7 +39,8 @@ _EXAMPLES = """examples:
   egorefine run raw/2011_09_26/2011_09_26_drive_0001_sync --layout kitti-raw --out out/
   egorefine run odometry/dataset/sequences/00 --layout kitti-odometry --frames 0:200 --out out/
   egorefine run V1_01_easy --layout euroc --max-disparity 48 --out out/
-  egorefine eval out/ truth/ --traj out/trajectory_tum.txt --gt-traj out/groundtruth_tum.txt --json scores.json"""
+  egorefine eval out/ truth/ --traj out/trajectory_tum.txt --gt-traj out/groundtruth_tum.txt --json scores.json
+  egorefine info"""
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter):
@@ -113,6 +115,16 @@ def parse_frame_range(text: str) -> slice:
     if start is not None and stop is not None and stop <= start:
         raise argparse.ArgumentTypeError(f"expected STOP > START, got {text!r}")
     return slice(start, stop, step)
+
+
+def _info(args: argparse.Namespace) -> int:
+    """``egorefine info``: one ``name: value`` line per entry of :func:`egorefine.core.machine_info`."""
+    info = machine_info()
+    env = info.pop("env")
+    for name, value in info.items():
+        print(f"{name}: {value}")
+    print("env: " + (" ".join(f"{k}={v}" for k, v in env.items()) or "(no thread variables set)"))
+    return 0
 
 
 def _common() -> argparse.ArgumentParser:
@@ -234,6 +246,10 @@ def _build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-time-difference", type=float, default=0.01, metavar="S",
                     help="seconds: TUM poses are paired by nearest timestamp within this (KITTI files by line)")
     ev.add_argument("--json", default=None, metavar="FILE", help="also write the metrics to this JSON file")
+
+    _command(sub, common, "info", "print the processor, library versions and thread counts",
+             "Print the processor model, the versions of Python, torch, numpy, numba and OpenCV, their thread "
+             "counts and the thread-related environment variables in force, one 'name: value' line each.", _info)
 
     folder = _command(
         sub, common, "folder", "deprecated: use 'run --layout folders'; refine rectified image folders to PFM maps",

@@ -25,6 +25,7 @@ from .errors import (
     ValueRangeError,
 )
 from .image import to_grey
+from .machine import cpu_model, machine_info
 from .numerics import eps_like, safe_div
 from .progress import progress
 
@@ -48,7 +49,9 @@ __all__ = [
     "ShapeError",
     "StateError",
     "ValueRangeError",
+    "cpu_model",
     "eps_like",
+    "machine_info",
     "progress",
     "safe_div",
     "to_grey",
