@@ -1,4 +1,4 @@
-"""No-drift check on a still camera: the real EuRoC V1_01 clip (../shared/data) and a long rendered still sequence.
+"""No-drift check on a still camera: the real EuRoC V1_01 clip (tests/data/real) and a long rendered still sequence.
 
 Drift is a systematic change of the map: the map sliding away, as a whole or region by region, from where it was.
 Each map d_t is compared with the first map moved to frame t (``W_t(d_0)``: by the refiner's estimated motion, by
@@ -19,7 +19,7 @@ paper rig's nearly still motion, realistic imaging, a seed outside the tuning ra
 against the true disparity (median |d_t - truth_t| over valid, non-occluded pixels) and the tile measure against
 the truth show whether anything accumulates over a length the real clip does not have.
 
-    python benchmarks/euroc_static.py [--root ../shared/data/euroc_v1_01_micro] [--frames 400]
+    python benchmarks/euroc_static.py [--root tests/data/real/euroc_v1_01_micro] [--frames 400]
 """
 
 from __future__ import annotations
@@ -178,7 +178,7 @@ def synthetic(frames: int, threads: int) -> tuple[str, dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--root", default=str(ROOT.parent / "shared" / "data" / "euroc_v1_01_micro"))
+    parser.add_argument("--root", default=str(ROOT / "tests" / "data" / "real" / "euroc_v1_01_micro"))
     parser.add_argument("--frames", type=int, default=400, help="frames of the rendered still sequence (0: skip)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()

@@ -2,7 +2,7 @@
 
 Pairs: the Middlebury 'motorcycle' pair that scikit-image ships in its package data (full size,
 741x500; unknown truth is inf) and the KITTI raw frame with truth from one Velodyne sweep in
-``../shared/data/kitti_velodyne_frame`` (1242x375; sparse: about 4 % of the pixels, uint16 PNG
+``tests/data/real/kitti_velodyne_frame`` (1242x375; sparse: about 4 % of the pixels, uint16 PNG
 with px = value / 256, 0 = none). Only pixels with truth count. Our matchers get the colour
 images as float tensors in [0, 1] and convert them with ``egorefine.core.to_grey``; OpenCV gets
 ``cv2.cvtColor(..., COLOR_*2GRAY)`` uint8 images (so cn = 1 in SGBM's P1 / P2), configured as
@@ -46,7 +46,7 @@ from benchmarks._common import (  # noqa: E402
 from egorefine.metrics import evaluate_disparity  # noqa: E402
 from egorefine.stereo import match_stereo  # noqa: E402
 
-KITTI_ROOT = ROOT / ".." / "shared" / "data" / "kitti_velodyne_frame"
+KITTI_ROOT = ROOT / "tests" / "data" / "real" / "kitti_velodyne_frame"  # shipped in the repository
 # the disparity range per pair: motorcycle truth reaches ~60 px, the KITTI LiDAR truth 69 px
 DISPARITIES = {"motorcycle": 64, "kitti_velodyne": 128}
 BM_BLOCKS = (9, 15)

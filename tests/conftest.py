@@ -7,7 +7,9 @@ from pathlib import Path
 import pytest
 import torch
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+# The one place that names the real data the tests read: small clips shipped in the repository, each folder with a
+# README giving its source, licence and what was trimmed. Tests take them through the fixtures below, never by path.
+REAL_DATA = Path(__file__).resolve().parent / "data" / "real"
 
 
 @pytest.fixture(autouse=True)
@@ -17,13 +19,26 @@ def _seed_and_threads():
     yield
 
 
-@pytest.fixture
-def euroc_root() -> Path:
-    """The real EuRoC clip shipped beside the repository (../shared/data); skipped when absent."""
-    root = SHARED_DATA / "euroc_v1_01_micro"
-    if not root.exists():
-        pytest.skip(f"EuRoC clip not found at {root}")
+def _real_data(name: str) -> Path:
+    """``REAL_DATA / name``; a checkout without it is broken, so the test errors instead of skipping."""
+    root = REAL_DATA / name
+    if not (root / "README.md").is_file():
+        raise FileNotFoundError(f"{root}: the real data the tests read ships in the repository under tests/data/real; "
+                                "this checkout lacks it")
     return root
+
+
+@pytest.fixture(scope="session")
+def euroc_root() -> Path:
+    """The first 40 frames of EuRoC MAV V1_01_easy in the ASL layout (tests/data/real/euroc_v1_01_micro)."""
+    return _real_data("euroc_v1_01_micro")
+
+
+@pytest.fixture(scope="session")
+def kitti_root() -> Path:
+    """One KITTI raw colour pair, its calibration and a one-sweep LiDAR disparity truth
+    (tests/data/real/kitti_velodyne_frame)."""
+    return _real_data("kitti_velodyne_frame")
 
 
 @pytest.fixture

@@ -14,7 +14,6 @@ from egorefine.data import StereoCalibration, read_calibration, rectify_maps
 
 from ._files import kitti_numbers, write_filestorage
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 H, W = 240, 320
 K1 = np.array([[300.0, 0.0, 158.0], [0.0, 302.0, 121.0], [0.0, 0.0, 1.0]])
 K2 = np.array([[305.0, 0.0, 162.0], [0.0, 304.0, 118.0], [0.0, 0.0, 1.0]])
@@ -145,10 +144,8 @@ def _kitti_line(key: str, M) -> str:
     return f"{key}: {kitti_numbers(M)}\n"
 
 
-def test_kitti_real_frame_calib() -> None:
-    path = SHARED / "kitti_velodyne_frame" / "calib" / "000001.txt"
-    if not path.exists():
-        pytest.skip(f"KITTI frame not found at {path}")
+def test_kitti_real_frame_calib(kitti_root) -> None:
+    path = kitti_root / "calib" / "000001.txt"
     maps, K, baseline = rectify_maps(read_calibration(path, camera="colour"))
     assert maps is None and float(K[0, 0]) == pytest.approx(721.5377) and float(K[1, 2]) == pytest.approx(172.854)
     assert baseline == pytest.approx(0.53273, abs=1e-5)

@@ -1,9 +1,8 @@
-"""The EuRoC loader on the real clip in ../shared/data (skipped when absent)."""
+"""The EuRoC loader on the real clip in tests/data/real (the ``euroc_root`` fixture of tests/conftest.py)."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -25,14 +24,9 @@ def _lr_dy(seq: EurocSequence) -> np.ndarray:
     return (q - p)[ok, 0, 1]
 
 
-ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "euroc_v1_01_micro"
-
-
 @pytest.fixture(scope="module")
-def euroc() -> EurocSequence:
-    if not ROOT.exists():
-        pytest.skip(f"EuRoC clip not found at {ROOT}")
-    return load_euroc(ROOT, max_frames=3)
+def euroc(euroc_root) -> EurocSequence:
+    return load_euroc(euroc_root, max_frames=3)
 
 
 def test_shapes_and_rig(euroc: EurocSequence) -> None:

@@ -103,12 +103,9 @@ def test_folders_calib_elsewhere_frame_slice_and_times(tmp_path) -> None:
 
 
 @pytest.fixture
-def kitti_frame() -> Path:
-    """The real KITTI pair with its calibration beside the repository (../shared/data); skipped when absent."""
-    root = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti_velodyne_frame"
-    if not root.exists():
-        pytest.skip(f"KITTI frame not found at {root}")
-    return root
+def kitti_frame(kitti_root) -> Path:
+    """The real KITTI pair with its calibration (tests/data/real, the ``kitti_root`` fixture of tests/conftest.py)."""
+    return kitti_root
 
 
 def test_folders_real_kitti_frame(kitti_frame) -> None:

@@ -1,4 +1,4 @@
-"""The default matcher and the SGM option on a real KITTI frame with LiDAR truth (../shared/data; skipped when absent).
+"""The default matcher and the SGM option on a real KITTI frame with LiDAR truth (tests/data/real).
 
 The truth is one raw Velodyne sweep projected into the left image (sparse, about 4 % of the pixels,
 wrong at some occlusion edges), so only pixels with truth are scored: bad-3 over the pixels both
@@ -10,8 +10,6 @@ StereoBM is held as a strict xfail until it is met.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -22,21 +20,19 @@ from egorefine.stereo import match_stereo
 
 cv2 = pytest.importorskip("cv2")
 
-ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti_velodyne_frame"
 MAX_DISPARITY = 128  # the LiDAR truth reaches 69 px; the same range as benchmarks/real.py
 SGM = {"cost": "census", "aggregation": "sgm", "block_size": 5}
 NO_SPECKLE = {"speckle_size": 0}  # the matcher without its default speckle filter
 
 
 @pytest.fixture(scope="module")
-def kitti():
+def kitti(kitti_root):
     """Colour pair (1, 3, H, W) RGB in [0, 1], grey uint8 pair for OpenCV, truth (1, 1, H, W) and its mask."""
-    if not ROOT.exists():
-        pytest.skip(f"KITTI LiDAR frame not found at {ROOT}")
-    bgr = [cv2.imread(str(ROOT / cam / "0000000001.png"), cv2.IMREAD_COLOR) for cam in ("image_2", "image_3")]
+    bgr = [cv2.imread(str(kitti_root / cam / "0000000001.png"), cv2.IMREAD_COLOR) for cam in ("image_2", "image_3")]
+    assert all(a is not None for a in bgr), f"{kitti_root}: cv2.imread could not read the pair"
     colour = [torch.from_numpy(a[..., ::-1].copy()).permute(2, 0, 1)[None].float() / 255.0 for a in bgr]
     grey = [cv2.cvtColor(a, cv2.COLOR_BGR2GRAY) for a in bgr]
-    truth, known = read_kitti_disparity(ROOT / "gt_disp_velo_image_2.png")
+    truth, known = read_kitti_disparity(kitti_root / "gt_disp_velo_image_2.png")
     return colour, grey, truth[None], known[None]
 
 
