@@ -55,6 +55,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's egorefine, not an installed one
 from _common import RESULTS, markdown_table, set_threads, update_readme, write_json  # noqa: E402
+from _timing import run_loop  # noqa: E402
 
 from egorefine.data import StereoSequence, render_sequence  # noqa: E402
 from egorefine.metrics import distinct_levels, evaluate_disparity, temporal_consistency  # noqa: E402
@@ -197,15 +198,8 @@ def run_refiner(refiner: EgoMotionRefiner, seq: StereoSequence) -> tuple[torch.T
     state = None
     for t in range(min(_WARM_UP_FRAMES, len(seq))):  # warm-up, with and without stereo, untimed
         _, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
-    state, disp, valid, ms, stereo = None, [], [], [], 0
-    for t in range(len(seq)):
-        t0 = time.perf_counter()
-        out, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
-        ms.append((time.perf_counter() - t0) * 1e3)
-        disp.append(out.disparity)
-        valid.append(out.valid)
-        stereo += int(out.stereo_ran)
-    return torch.cat(disp), torch.cat(valid), ms, stereo
+    run = run_loop(refiner, seq)  # the timer benchmarks/speed.py uses too
+    return run.disparity, run.valid, run.ms, sum(run.stereo)
 
 
 def methods_for(max_disp: int, holes: bool) -> dict[str, Callable[[StereoSequence], tuple]]:
