@@ -43,6 +43,7 @@ from benchmarks._common import (  # noqa: E402
     update_readme,
     write_json,
 )
+from benchmarks._opencv import stereo_bm, stereo_sgbm  # noqa: E402
 from egorefine.metrics import evaluate_disparity  # noqa: E402
 from egorefine.stereo import match_stereo  # noqa: E402
 
@@ -117,21 +118,9 @@ def kitti_velodyne(root: Path = KITTI_ROOT) -> Pair:
 
 
 def opencv_matchers(num: int) -> dict:
-    """name -> configured OpenCV matcher (grey input, cn = 1)."""
-    cn = 1
-    out = {}
-    for bs in BM_BLOCKS:
-        bm = cv2.StereoBM_create(num, bs)
-        bm.setUniquenessRatio(10)
-        bm.setSpeckleWindowSize(100)
-        bm.setSpeckleRange(2)
-        bm.setDisp12MaxDiff(1)
-        out[f"opencv bm (block {bs})"] = bm
-    bs = SGBM_BLOCK
-    out[f"opencv sgbm 3way (block {bs})"] = cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=num, blockSize=bs, P1=8 * cn * bs * bs, P2=32 * cn * bs * bs,
-        disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    """name -> configured OpenCV matcher (grey input, cn = 1; benchmarks/_opencv.py, which the tests use too)."""
+    out = {f"opencv bm (block {bs})": stereo_bm(num, bs) for bs in BM_BLOCKS}
+    out[f"opencv sgbm 3way (block {SGBM_BLOCK})"] = stereo_sgbm(num, SGBM_BLOCK)
     return out
 
 

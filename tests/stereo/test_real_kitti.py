@@ -1,16 +1,21 @@
 """The default matcher and the SGM option on a real KITTI frame with LiDAR truth (tests/data/real).
 
 The truth is one raw Velodyne sweep projected into the left image (sparse, about 4 % of the pixels,
-wrong at some occlusion edges), so only pixels with truth are scored: bad-3 over the pixels both
-marked valid and with truth, density over the pixels with truth. The bounds sit a little above what
-the matchers score today (benchmarks/results/real.md has the full comparison with OpenCV). Issue 17's
-targets against OpenCV: the SGM option's against SGBM is met and tested; the default matcher's against
-StereoBM is held as a strict xfail until it is met.
+wrong at some occlusion edges), so only pixels with truth are scored: bad-1 and bad-3 over the pixels
+both marked valid and with truth, density over the pixels with truth. The bounds sit a few percent beyond
+what the matchers score on this frame (error rates about 1.05-1.08 times, densities 1-2 points below;
+benchmarks/results/real.md has the full comparison with OpenCV): the frame is fixed and the matchers'
+decisions move by a handful of pixels between machines, while a matcher without its sub-pixel fit raises
+bad-1 by over a tenth. OpenCV runs as its users run it (benchmarks/_opencv.py, as benchmarks/real.py).
+Issue 17's targets against OpenCV: the SGM option's against SGBM is met and tested; the default matcher's
+against StereoBM is held as a strict xfail until it is met.
 """
 
 from __future__ import annotations
 
-import numpy as np
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -19,6 +24,8 @@ from egorefine.metrics import bad_pixel_rate, density
 from egorefine.stereo import match_stereo
 
 cv2 = pytest.importorskip("cv2")
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from benchmarks._opencv import compute, stereo_bm, stereo_sgbm  # noqa: E402
 
 MAX_DISPARITY = 128  # the LiDAR truth reaches 69 px; the same range as benchmarks/real.py
 SGM = {"cost": "census", "aggregation": "sgm", "block_size": 5}
@@ -37,42 +44,34 @@ def kitti(kitti_root):
 
 
 def _score(disparity: torch.Tensor, valid: torch.Tensor, truth: torch.Tensor, known: torch.Tensor):
-    """(bad-2, bad-3) over valid pixels with truth, density over pixels with truth."""
+    """(bad-2, bad-3) over valid pixels with truth, density over pixels with truth, bad-1 over valid pixels with
+    truth."""
     scored = valid & known
     return (float(bad_pixel_rate(disparity, truth, 2.0, scored)), float(bad_pixel_rate(disparity, truth, 3.0, scored)),
-            float(density(valid, known)))
+            float(density(valid, known)), float(bad_pixel_rate(disparity, truth, 1.0, scored)))
 
 
-@pytest.mark.parametrize(("options", "max_bad3", "min_density"), [
-    pytest.param({}, 0.115, 0.27, id="default"),
-    # the SGM bounds failed before its penalties and checks were tuned for noisy weak texture (issue 17:
-    # bad-3 0.110 at density 0.418 with the speckle filter, 0.216 at 0.534 without)
-    pytest.param(SGM, 0.095, 0.82, id="sgm"),
-    pytest.param(NO_SPECKLE, 0.20, 0.34, id="default-no-speckle"),
-    pytest.param({**SGM, **NO_SPECKLE}, 0.11, 0.84, id="sgm-no-speckle"),
+@pytest.mark.parametrize(("options", "max_bad1", "max_bad3", "min_density"), [
+    pytest.param({}, 0.29, 0.115, 0.27, id="default"),
+    # the SGM bounds failed before its penalties and checks were tuned for noisy weak texture (issue 17)
+    pytest.param(SGM, 0.27, 0.095, 0.82, id="sgm"),
+    pytest.param(NO_SPECKLE, 0.37, 0.20, 0.34, id="default-no-speckle"),
+    pytest.param({**SGM, **NO_SPECKLE}, 0.285, 0.11, 0.84, id="sgm-no-speckle"),
 ])
-def test_bad3_and_density_on_lidar_truth(kitti, options, max_bad3, min_density):
+def test_bad3_and_density_on_lidar_truth(kitti, options, max_bad1, max_bad3, min_density):
+    """bad-1 (where the sub-pixel fit shows), bad-3 (gross errors) and density against the LiDAR truth."""
     (left, right), _, truth, known = kitti
     with torch.no_grad():
         out = match_stereo(left, right, MAX_DISPARITY, **options)
-    _, bad3, dens = _score(out.disparity, out.valid, truth, known)
+    _, bad3, dens, bad1 = _score(out.disparity, out.valid, truth, known)
+    assert bad1 <= max_bad1, f"bad-1 {bad1:.4f} above {max_bad1}"
     assert bad3 <= max_bad3, f"bad-3 {bad3:.4f} above {max_bad3}"
     assert dens >= min_density, f"density {dens:.4f} below {min_density}"
 
 
 def _opencv(name: str):
     """OpenCV's matcher as its users configure it (grey input, cn = 1), as benchmarks/real.py runs it."""
-    if name == "bm":
-        matcher = cv2.StereoBM_create(MAX_DISPARITY, 9)
-        matcher.setUniquenessRatio(10)
-        matcher.setSpeckleWindowSize(100)
-        matcher.setSpeckleRange(2)
-        matcher.setDisp12MaxDiff(1)
-        return matcher
-    bs = 5
-    return cv2.StereoSGBM_create(0, MAX_DISPARITY, bs, P1=8 * bs * bs, P2=32 * bs * bs, disp12MaxDiff=1,
-                                 uniquenessRatio=10, speckleWindowSize=100, speckleRange=2,
-                                 mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    return stereo_bm(MAX_DISPARITY) if name == "bm" else stereo_sgbm(MAX_DISPARITY)
 
 
 @pytest.mark.parametrize(("options", "opencv", "density_allowance"), [
@@ -87,8 +86,7 @@ def test_issue17_target_against_opencv(kitti, options, opencv, density_allowance
         out = match_stereo(left, right, MAX_DISPARITY, **options)
     ours = _score(out.disparity, out.valid, truth, known)
     cv2.setNumThreads(1)
-    raw = _opencv(opencv).compute(grey_l, grey_r)
-    disp = torch.from_numpy(raw.astype(np.float32) / 16.0)[None, None]
-    theirs = _score(disp, torch.from_numpy(raw >= 0)[None, None], truth, known)
+    disp, valid = compute(_opencv(opencv), grey_l, grey_r)
+    theirs = _score(torch.from_numpy(disp)[None, None], torch.from_numpy(valid)[None, None], truth, known)
     assert ours[0] < theirs[0], f"bad-2 {ours[0]:.4f} vs OpenCV {opencv} {theirs[0]:.4f}"
     assert ours[2] >= theirs[2] - density_allowance, f"density {ours[2]:.3f} vs OpenCV {opencv} {theirs[2]:.3f}"
