@@ -12,8 +12,9 @@ sequence ``i``'s seed as ``REPORT_SEED_BASE + i`` (1000 + i), and refuses to wri
 any other seed.
 
 Methods, per sequence, in the same run: per-frame own stereo (the default matcher, sub-pixel), per-frame
-OpenCV StereoBM and StereoSGBM as OpenCV users run them (SGBM 3-way, blockSize 5, P1 = 8*cn*bs^2,
-P2 = 32*cn*bs^2, uniquenessRatio 10, speckleWindowSize 100, speckleRange 2, disp12MaxDiff 1), and the
+OpenCV StereoBM (block 9) and StereoSGBM as OpenCV users run them (benchmarks/_opencv.py: SGBM 3-way, blockSize 5,
+P1 = 8*cn*bs^2, P2 = 32*cn*bs^2; both with uniquenessRatio 10, speckleWindowSize 100, speckleRange 2,
+disp12MaxDiff 1; runs before 2026-12-02 had StereoBM without that post-processing), and the
 refiner at verify_every=5: Kalman mode with default options (the target row: on verification frames the box
 matcher, its holes filled from census + SGM, ``StereoOptions.fill``), paper mode (the method as published:
 pixel-accurate stereo, the linear motion solve of eq. 3, gate 0.5 px, gain 0.4), Kalman mode with the box
@@ -48,13 +49,13 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's egorefine, not an installed one
 from _common import RESULTS, markdown_table, set_threads, update_readme, write_json  # noqa: E402
+from _opencv import compute, stereo_bm, stereo_sgbm  # noqa: E402
 from _timing import run_loop  # noqa: E402
 
 from egorefine.data import StereoSequence, render_sequence  # noqa: E402
@@ -155,25 +156,16 @@ def _u8(img: torch.Tensor) -> np.ndarray:
 
 
 def opencv_matchers(max_disparity: int) -> dict[str, Callable]:
-    """StereoBM and StereoSGBM with the settings OpenCV users run (grey images, so cn = 1)."""
-    bm = cv2.StereoBM_create(numDisparities=max_disparity, blockSize=9)
-    bs, cn = 5, 1
-    sgbm = cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=max_disparity, blockSize=bs, P1=8 * cn * bs**2, P2=32 * cn * bs**2,
-        uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
+    """StereoBM and StereoSGBM as their users run them (benchmarks/_opencv.py), on grey images."""
 
     def run(matcher):
         def f(left: torch.Tensor, right: torch.Tensor):
-            raw = matcher.compute(_u8(left), _u8(right))
-            d = torch.from_numpy(raw.astype(np.float32) / 16.0)[None, None]
-            # OpenCV marks an invalid pixel with (minDisparity - 1) * 16, here -16.
-            return d.clamp_min(0), torch.from_numpy(raw >= 0)[None, None]
+            d, valid = compute(matcher, _u8(left), _u8(right))
+            return torch.from_numpy(d)[None, None].clamp_min(0), torch.from_numpy(valid)[None, None]
 
         return f
 
-    return {BM: run(bm), SGBM: run(sgbm)}
+    return {BM: run(stereo_bm(max_disparity)), SGBM: run(stereo_sgbm(max_disparity))}
 
 
 # numba compiles a kernel on its first call (or loads it from its cache, which any edit of its module

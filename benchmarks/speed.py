@@ -3,13 +3,14 @@
 The method exists so that stereo need not run on every frame: the loop (Kalman mode, verify every 5, default
 options) should cost less per frame than OpenCV's SGBM on every frame. Per case (640x480 at 32 and 64 disparities,
 1242x375 at 128; realistic renders, seed 7777, not a tuning seed of the accuracy benchmarks), each timed frame runs,
-one after the other on the same pair: OpenCV StereoBM (block 9) and StereoSGBM as their users run them
-(benchmarks/refine.py's settings: 3-way, block 5, P1 = 8*25, P2 = 32*25, uniqueness 10, speckle window 100, range 2,
-disp12MaxDiff 1), our default box matcher and our census + SGM alone (``match_stereo`` with the refiner's options
-and ``StereoOptions.dense()``), and the loop's frame (benchmarks/_timing.py's timer, with each frame split into
-stages). Frames 1-20 of each of ``--passes`` passes are timed (frame 0 starts the state untimed; one untimed pass
-warms every method up). Medians and inter-quartile ranges over all timed frames; the loop's ms per frame is the mean
-over a pass's frames (one verification in five), its ratio to SGBM taken per pass against that pass's SGBM mean.
+one after the other on the same pair: OpenCV StereoBM (block 9) and StereoSGBM (3-way, block 5, P1 = 8*25, P2 =
+32*25) with the post-processing their users turn on (uniqueness 10, speckle window 100 within 2 px, a 1 px left-
+right check; benchmarks/_opencv.py, shared with real.py and the tests), our default box matcher and our census + SGM
+alone (``match_stereo`` with the refiner's options and ``StereoOptions.dense()``), and the loop's frame
+(benchmarks/_timing.py's timer, with each frame split into stages). Frames 1-20 of each of ``--passes`` passes are
+timed (frame 0 starts the state untimed; one untimed pass warms every method up). Medians and inter-quartile ranges
+over all timed frames; the loop's ms per frame is the mean over a pass's frames (one verification in five), its
+ratio to SGBM taken per pass against that pass's SGBM mean.
 
 Targets (issue 29): loop at most 0.5x SGBM per frame (640x480 D=64 and 1242x375 D=128), our census + SGM at most
 1.0x SGBM, our box matcher at most 1.0x StereoBM, a prediction frame at most 0.25x an SGBM frame.
@@ -46,6 +47,7 @@ from _common import (  # noqa: E402
     update_readme,
     write_json,
 )
+from _opencv import stereo_bm, stereo_sgbm  # noqa: E402
 from _timing import BOOKKEEPING, StageProfiler, run_loop, stage_labels  # noqa: E402
 
 from egorefine.data import StereoSequence, render_sequence  # noqa: E402
@@ -79,14 +81,8 @@ def _u8(img: torch.Tensor) -> np.ndarray:
 
 
 def opencv(max_disparity: int) -> dict[str, cv2.StereoMatcher]:
-    """StereoBM and StereoSGBM as their users run them (grey images: cn = 1), refine.py's settings."""
-    bs = 5
-    return {
-        "StereoBM": cv2.StereoBM_create(numDisparities=max_disparity, blockSize=9),
-        "StereoSGBM": cv2.StereoSGBM_create(minDisparity=0, numDisparities=max_disparity, blockSize=bs,
-                                            P1=8 * bs**2, P2=32 * bs**2, uniquenessRatio=10, speckleWindowSize=100,
-                                            speckleRange=2, disp12MaxDiff=1, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY),
-    }
+    """StereoBM and StereoSGBM as their users run them (benchmarks/_opencv.py, the tests' and real.py's too)."""
+    return {"StereoBM": stereo_bm(max_disparity), "StereoSGBM": stereo_sgbm(max_disparity)}
 
 
 def _timed(fn) -> float:
