@@ -4,9 +4,9 @@ The method exists so that stereo need not run on every frame: the loop (Kalman m
 options) should cost less per frame than OpenCV's SGBM on every frame. Per case (640x480 at 32 and 64 disparities,
 1242x375 at 128; realistic renders, seed 7777, not a tuning seed of the accuracy benchmarks), each timed frame runs,
 one after the other on the same pair: OpenCV StereoBM (block 9) and StereoSGBM (3-way, block 5, P1 = 8*25, P2 =
-32*25) with the post-processing their users turn on (uniqueness 10, speckle window 100 within 2 px, a 1 px left-
-right check; benchmarks/_opencv.py, shared with real.py and the tests), our default box matcher and our census + SGM
-alone (``match_stereo`` with the refiner's options and ``StereoOptions.dense()``), and the loop's frame
+32*25) with the post-processing their users turn on (uniqueness 10, speckle window 100 within 2 px, a 1 px
+left-right check; benchmarks/_opencv.py, shared with real.py and the tests), our default box matcher and our census +
+SGM alone (``match_stereo`` with the refiner's options and ``StereoOptions.dense()``), and the loop's frame
 (benchmarks/_timing.py's timer, with each frame split into stages). Frames 1-20 of each of ``--passes`` passes are
 timed (frame 0 starts the state untimed; one untimed pass warms every method up). Medians and inter-quartile ranges
 over all timed frames; the loop's ms per frame is the mean over a pass's frames (one verification in five), its
