@@ -80,17 +80,25 @@ if AVAILABLE:
 
     @_jit(inline="always")
     def _window_sums(col, pairs, r, out):
-        """``out[x] = sum(col[x : x + 2r + 1])``: the first column plus ``r`` pairs (``pairs``: scratch)."""
+        """``out[x] = sum(col[x : x + 2r + 1])``: sums of column pairs (``pairs``: scratch), added to the first column
+        four pairs per pass (each pass over a row costs a load and a store per element; the adds are cheap)."""
         for u in range(col.shape[0] - 1):
             pairs[u] = col[u] + col[u + 1]
         for x in range(out.shape[0]):
             out[x] = col[x]
-        for i in range(r):
-            o = 1 + 2 * i
+        i = 0
+        while i + 4 <= r:
+            p0, p1, p2, p3 = pairs[1 + 2 * i:], pairs[3 + 2 * i:], pairs[5 + 2 * i:], pairs[7 + 2 * i:]
             for x in range(out.shape[0]):
-                out[x] += pairs[x + o]
+                out[x] += (p0[x] + p1[x]) + (p2[x] + p3[x])
+            i += 4
+        while i < r:
+            p0 = pairs[1 + 2 * i:]
+            for x in range(out.shape[0]):
+                out[x] += p0[x]
+            i += 1
 
-    @_jit
+    @_jit(error_model="numpy")
     def _band(lp, rp, y0, y1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d_pos, subpixel, parabola,
               disparity, valid, variance, x0=0):
         """Match output rows ``[y0, y1)`` of one image pair.
@@ -103,6 +111,13 @@ if AVAILABLE:
         ``guard`` is the left-right tolerance (-1: no left-right check). ``x0`` is the image column of output
         column 0 when the arrays are a window of columns (:func:`match_sad_windows`): candidates with
         ``x0 + x < d`` are out of the right view, and the left-right check sees the window's columns only.
+
+        Per row, candidate by candidate: the window's column sums slide down one row, their box sums are stored
+        as the candidate's cost row, and one pass over that row updates the running winner and runner-up; after
+        the candidates, the winner's neighbours are read back from the stored rows and the checks and the float
+        tail run as loops over the row. Every loop is branch-free over a contiguous row (selects, no
+        short-circuit conditions, no division checks: ``error_model="numpy"``, the divisors are clamped above
+        zero), so LLVM vectorises each one.
         """
         wp = lp.shape[1]
         w = wp - 2 * r
@@ -111,107 +126,135 @@ if AVAILABLE:
         col = np.zeros((num, wp), np.int16)  # window column sums per candidate
         tcol = np.zeros(wp, np.int16)  # window column sums of |prefiltered| (texture)
         pairs = np.empty(wp, np.int16)
-        cost = np.empty((num, w), np.int16)
+        # the box sums of a row per candidate, with a row of _INVALID above and below (candidates -1 and num) and a
+        # column of _INVALID either side (columns -1 and w): the winner's neighbours are then plain reads
+        costp = np.full((num + 2, w + 2), big, np.int16)
+        cost = costp[1: num + 1]
+        bigrow = np.full(w, big, np.int16)
         best = np.empty(w, np.int16)
         jbest = np.empty(w, np.int16)
-        rmin = np.empty(w, np.int16)
         second = np.empty(w, np.int16)
+        lowest = np.empty(w, np.int16)  # the lowest cost of the candidates up to j - 2
+        cps = np.empty(w, np.int16)
+        cms = np.empty(w, np.int16)
+        near_l = np.empty(w, np.int16)
+        near_r = np.empty(w, np.int16)
+        rmin_p = np.empty(w + max_d, np.int16)  # the right view's minimum at xr, stored at xr + max_d
+        rmin = rmin_p[max_d:]
         tsum = np.empty(w, np.int16)
         unit, floor_area, eps, ratio = flt[0], flt[1], flt[2], flt[3]
         zero, half, two, quarter = np.float32(0.0), np.float32(0.5), np.float32(2.0), np.float32(0.25)
         one, qvar, bigvar = np.float32(1.0), np.float32(_QUANTISATION_VARIANCE), np.float32(INVALID_VARIANCE)
         top = np.float32(max_d - 1)
         for y in range(y0, y1):
-            # slide the window's column sums to row y (all 2r + 1 rows at the band's first row)
-            if y == y0:
-                for t in range(k):
-                    lrow, rrow = lp[y + t], rp[y + t]
-                    for j in range(num):
-                        cj, rj = col[j], rrow[1 + j : 1 + j + wp]
-                        for u in range(wp):
-                            cj[u] += _absdiff(lrow[u], rj[u])
-                    for u in range(wp):
-                        tcol[u] += _absdiff(lrow[u], c_level)
-            else:
-                ln, rn, lo, ro = lp[y + 2 * r], rp[y + 2 * r], lp[y - 1], rp[y - 1]
-                for j in range(num):
-                    # (slices, not offset indices: LLVM vectorises a loop over slices ~10x better here)
-                    cj, rnj, roj = col[j], rn[1 + j : 1 + j + wp], ro[1 + j : 1 + j + wp]
-                    for u in range(wp):
-                        cj[u] += _absdiff(ln[u], rnj[u]) - _absdiff(lo[u], roj[u])
-                for u in range(wp):
-                    tcol[u] += _absdiff(ln[u], c_level) - _absdiff(lo[u], c_level)
-            # box sums of the row: the first column plus r pairs of columns; candidates out of the right view
-            # (x < d) cost _INVALID; the running minimum keeps the first (lowest j: largest d) on ties
+            first = y == y0
+            ln, rn, lo, ro = lp[y + 2 * r], rp[y + 2 * r], lp[max(y - 1, 0)], rp[max(y - 1, 0)]
             for x in range(w):
                 best[x] = big
                 jbest[x] = 0
+                second[x] = big
+                lowest[x] = big
+            for x in range(w + max_d):
+                rmin_p[x] = big
             for j in range(num):
-                out = cost[j]
-                _window_sums(col[j], pairs, r, out)
+                # slide the window's column sums to row y (all 2r + 1 rows at the band's first row)
+                cj = col[j]
+                if first:
+                    for t in range(k):
+                        lrow, rj = lp[y + t], rp[y + t, 1 + j: 1 + j + wp]
+                        for u in range(wp):
+                            cj[u] += _absdiff(lrow[u], rj[u])
+                else:
+                    # (slices, not offset indices: LLVM vectorises a loop over slices ~10x better here)
+                    rnj, roj = rn[1 + j: 1 + j + wp], ro[1 + j: 1 + j + wp]
+                    for u in range(wp):
+                        cj[u] += _absdiff(ln[u], rnj[u]) - _absdiff(lo[u], roj[u])
+                # box sums; candidates out of the right view (x < d) cost _INVALID
+                out = cost[j, 1: w + 1]
+                _window_sums(cj, pairs, r, out)
                 for x in range(min(max(max_d - 1 - j - x0, 0), w)):
                     out[x] = big
-                jj = np.int16(j)
+                # the running winner (the first lowest: a strict <) and the runner-up beyond +-1 candidate of it:
+                # when the winner moves to j, the lowest cost up to j - 2; then every candidate from j + 2 on
+                older = cost[j - 2, 1: w + 1] if j > 1 else bigrow
+                jj, jm2 = np.int16(j), np.int16(j - 2)
                 for x in range(w):
-                    c = out[x]
-                    jbest[x] = jj if c < best[x] else jbest[x]
-                    best[x] = min(best[x], c)
-            _window_sums(tcol, pairs, r, tsum)
-            if guard >= 0:
-                # the right view's minimum at xr over d: cost_right(xr, d) = cost_left(xr + d, d)
-                for x in range(w):
-                    rmin[x] = big
-                for j in range(max(0, max_d - w), num):
+                    c, b, jb, s = out[x], best[x], jbest[x], second[x]
+                    low = min(lowest[x], older[x])
+                    moved = c < b
+                    s_far = min(s, c) if jb <= jm2 else s
+                    lowest[x] = low
+                    second[x] = low if moved else s_far
+                    jbest[x] = jj if moved else jb
+                    best[x] = min(b, c)
+                if guard >= 0:
+                    # the right view's minimum at xr = x - d over d: cost_right(xr, d) = cost_left(xr + d, d)
                     d = max_d - 1 - j
-                    cj, rm = cost[j, d:], rmin[: w - d]
-                    for x in range(w - d):
-                        rm[x] = min(rm[x], cj[x])
-            if uniq:
-                # runner-up beyond +-1 candidate of the winner
-                for x in range(w):
-                    second[x] = big
-                for j in range(num):
-                    cj, lo_j, hi_j = cost[j], np.int16(j - 1), np.int16(j + 1)
-                    for x in range(w):
-                        jb = jbest[x]
-                        second[x] = min(second[x], cj[x] if (jb < lo_j or jb > hi_j) else big)
+                    if d < w:
+                        rm, cd = rmin[: w - d], out[d:]
+                        for x in range(w - d):
+                            rm[x] = min(rm[x], cd[x])
+            # the winner's neighbours in candidate (sub-pixel fit) and on the diagonal through its right-view pixel
+            # (left-right tolerance 1): reversed order, so j - 1 is d + 1
             for x in range(w):
-                j = np.int64(jbest[x])
+                jb = np.int64(jbest[x])
+                cps[x] = costp[jb, x + 1]
+                cms[x] = costp[jb + 2, x + 1]
+                near_l[x] = costp[jb + 2, x]
+                near_r[x] = costp[jb, x + 2]
+            if guard > 1:
+                # a wider tolerance: the lowest cost on the winner's right-view pixel within guard candidates
+                for x in range(w):
+                    jb = np.int64(jbest[x])
+                    near = best[x]
+                    for dj in range(-guard, guard + 1):
+                        jn, xn = jb + dj, x - dj
+                        if dj != 0 and 0 <= jn < num and 0 <= xn < w:
+                            near = min(near, cost[jn, xn + 1])
+                    near_l[x] = near
+                    near_r[x] = big
+            if first:
+                for t in range(k):
+                    lrow = lp[y + t]
+                    for u in range(wp):
+                        tcol[u] += _absdiff(lrow[u], c_level)
+            else:
+                for u in range(wp):
+                    tcol[u] += _absdiff(ln[u], c_level) - _absdiff(lo[u], c_level)
+            _window_sums(tcol, pairs, r, tsum)
+            vrow = valid[y]
+            for x in range(w):
+                j = jbest[x]
                 b0 = best[x]
-                cp = cost[j - 1, x] if j > 0 else big  # reversed order: j - 1 is d + 1
-                cm = cost[j + 1, x] if j + 1 < num else big
-                hi = max(b0, cp)
-                ok = hi < big
-                inner = max(hi, cm) < big
+                ok = max(b0, cps[x]) < big
+                ok &= tsum[x] >= t_need
                 if min_d_pos:
-                    ok = ok and j < num - 1
+                    ok &= j < num - 1
                 if guard >= 0:
                     # the right view's minimum at x - d must be reached within guard candidates of d
-                    near = b0
-                    for dj in range(-guard, guard + 1):
-                        jj, xx = j + dj, x - dj
-                        if dj != 0 and 0 <= jj < num and 0 <= xx < w:
-                            near = min(near, cost[jj, xx])
-                    xr = x - (max_d - 1 - j)
-                    ok = ok and near <= (rmin[xr] if xr >= 0 else big)
+                    near = min(b0, min(near_l[x], near_r[x])) if guard > 0 else b0
+                    ok &= near <= rmin_p[x + 1 + np.int64(j)]
                 if uniq:
-                    ok = ok and np.float32(second[x]) > np.float32(b0) * ratio
-                ok = ok and tsum[x] >= t_need
-                # fast._tail: sub-pixel fit and variance in float32, in its order of operations
+                    ok &= np.float32(second[x]) > np.float32(b0) * ratio
+                vrow[x] = ok
+            # fast._tail: sub-pixel fit and variance in float32, in its order of operations
+            drow, varrow = disparity[y], variance[y]
+            for x in range(w):
+                b0, cp, cm = best[x], cps[x], cms[x]
+                inner = max(max(b0, cp), cm) < big
                 fp, fm, c0 = np.float32(cp) * unit, np.float32(cm) * unit, np.float32(b0) * unit
                 fin = one if inner else zero
-                keep = one if ok else zero
+                keep = one if vrow[x] else zero
                 curvature = (fm - two * c0) + fp
                 denom = two * curvature if parabola else two * (max(fm, fp) - c0)
-                dsp = top - np.float32(j)
+                dsp = top - np.float32(jbest[x])
                 if subpixel:
                     dsp += min(max((fm - fp) / max(denom, eps), -half), half) * fin
-                disparity[y, x] = dsp * keep
+                drow[x] = dsp * keep
                 spread = (c0 + floor_area) / (max(curvature, zero) + eps)
                 var = spread * spread * quarter
                 var = (min(var + qvar, bigvar) - one) * fin + one
-                variance[y, x] = var * keep + (one - keep) * bigvar
-                valid[y, x] = ok
+                varrow[x] = var * keep + (one - keep) * bigvar
 
 
 def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
