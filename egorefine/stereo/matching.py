@@ -38,7 +38,7 @@ from . import _sad_numba, _sgm_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, box_sum_valid, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
-from .speckle import remove_speckles
+from .speckle import clear_invalid_, remove_speckles
 
 __all__ = ["StereoOutput", "block_matching", "match_stereo", "fill_invalid", "BlockMatching", "INVALID_VARIANCE"]
 
@@ -384,11 +384,8 @@ def match_stereo(
                  sgm_p1, sgm_p2, sgm_paths, differentiable, temperature, soft_radius, census_max_distance)
     if speckle_size > 0:
         valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
-        if use_compiled(out.disparity, out.variance, valid):  # numpy: no torch pass over the full maps
-            dropped = np.logical_not(valid.numpy())
-            disparity, variance = out.disparity.numpy(), out.variance.numpy()  # (fresh outputs of _match)
-            disparity[dropped] = 0.0
-            variance[dropped] = INVALID_VARIANCE
+        if use_compiled(out.disparity, out.variance, valid):  # compiled: no torch pass over the full maps
+            clear_invalid_(valid, out.disparity, out.variance, INVALID_VARIANCE)  # (fresh outputs of _match)
             return StereoOutput(out.disparity, valid, out.variance)
         out = StereoOutput(torch.where(valid, out.disparity, torch.zeros_like(out.disparity)), valid,
                            torch.where(valid, out.variance, torch.full_like(out.variance, INVALID_VARIANCE)))

@@ -92,6 +92,37 @@ if AVAILABLE:
                     o[x] = size[parent[lab[x]]] > max_size
 
 
+    @_jit
+    def _clear_invalid(valid, disparity, variance, fill):
+        """In place: ``disparity`` 0 and ``variance`` ``fill`` where ``valid`` is False (flat arrays of one length);
+        one vectorised pass, where numpy's masked assignment takes several."""
+        for i in range(valid.shape[0]):
+            keep = valid[i]
+            disparity[i] = disparity[i] if keep else 0.0
+            variance[i] = variance[i] if keep else fill
+
+
+def clear_invalid_(valid: torch.Tensor, disparity: torch.Tensor, variance: torch.Tensor, fill: float) -> None:
+    """Set ``disparity`` to 0 and ``variance`` to ``fill`` in place where ``valid`` is False, compiled (the CPU
+    inference path of :func:`egorefine.stereo.match_stereo` after its speckle filter: no torch pass over the maps).
+
+    Args:
+        valid: ``(B, 1, H, W)`` bool CPU tensor.
+        disparity, variance: ``(B, 1, H, W)`` contiguous float32 CPU tensors, written in place.
+        fill: the variance of an invalid pixel.
+
+    >>> d, var = torch.ones(1, 1, 1, 3), torch.ones(1, 1, 1, 3)
+    >>> clear_invalid_(torch.tensor([[[[True, False, True]]]]), d, var, 9.0)
+    >>> d.flatten().tolist(), var.flatten().tolist()
+    ([1.0, 0.0, 1.0], [1.0, 9.0, 1.0])
+    """
+    if AVAILABLE and all(t.is_contiguous() for t in (valid, disparity, variance)):
+        _clear_invalid(valid.numpy().reshape(-1), disparity.numpy().reshape(-1), variance.numpy().reshape(-1),
+                       np.float32(fill))
+    else:
+        disparity.masked_fill_(~valid, 0.0)
+        variance.masked_fill_(~valid, fill)
+
 def _links(disp: torch.Tensor, valid: torch.Tensor, max_diff: float, dim: int) -> torch.Tensor:
     """Links between neighbours along ``dim`` (-1: x, -2: y): both valid, disparities within ``max_diff``."""
     n = disp.shape[dim]
