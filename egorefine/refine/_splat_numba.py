@@ -8,14 +8,18 @@ depends only on its own values and a few gathered
 ones, so here it is three loops:
 
 1. (row bands on threads) move every source point (PAPER.md eq. 1 in inverse-depth form), write the
-   padded source maps and each point's z-buffer cell and key; then (one thread) the scatter;
+   padded source maps and each point's z-buffer cell; then (one thread) the scatter of the keys;
 2. (row bands on threads) per target pixel: the 3x3 z-buffer maximum, the candidate, the check in
    frame ``t-1``, the start value and the inverse-warp refinement steps;
-3. (row bands on threads) the background hole fill and the outputs.
+3. (the same rows) the background hole fill and the outputs.
 
 Step 2 works a row at a time and splits each stage into loops that only compute (LLVM turns them
 into SIMD code) and loops that only gather (which would keep a loop scalar), several times faster than
-one loop per pixel (timings in docs/decisions.md).
+one loop per pixel (timings in docs/decisions.md). What else keeps a compute loop scalar, each found by LLVM's
+vectorisation remarks: a test of a loop-invariant flag or a select between two rules inside it, a conversion of
+the int64 loop index to float, a float or int64 reduction, more arrays written and read than LLVM makes run-time
+overlap checks for. So the loops read a float32 column index, the rules have a loop each, and cheap values are
+recomputed rather than stored (the same formulas in the same order: the same bits).
 
 They repeat the torch path's float32 formulas in the same order (see :mod:`egorefine.refine.predict`
 for what each step means), so the decisions agree with it; values may differ in the last bits
@@ -48,6 +52,17 @@ _PAD = 2  # margin of the padded source layout (_splat._PAD)
 
 
 if AVAILABLE:
+    from llvmlite import ir
+    from numba.core import types
+    from numba.extending import intrinsic
+
+    @intrinsic
+    def _key_value(typingctx, key):
+        """The float32 whose bits are the int32 z-buffer ``key`` (a register bitcast: numpy's ``view`` of a scalar
+        would go through memory)."""
+        def codegen(context, builder, signature, args):
+            return builder.bitcast(args[0], ir.FloatType())
+        return types.float32(types.int32), codegen
 
     @_jit(inline="always")
     def _lerp(start, end, weight):
@@ -57,40 +72,42 @@ if AVAILABLE:
         return low if abs(weight) < _F(0.5) else high
 
     @_jit
-    def _move_sources(d, valid, has_valid, var, has_var, A, a, y0, y1, key_src, key_new, var_p, at, keys):
+    def _move_sources(d, valid, var, has_var, A, a, y0, y1, key_src, key_new, var_p, at):
         """Step 1 for source rows ``y0:y1`` of one batch item: move the points (eq. 1), write the padded source
-        maps (``-big`` where invalid), each point's z-buffer cell ``at`` and key (-1: none). Returns the number of
-        non-finite disparities (the caller raises: checked here rather than by a torch pass over the map)."""
+        maps (``-big`` where invalid) and each point's z-buffer cell ``at``. ``valid``: ``(H, W)``, or ``(1, W)`` of
+        True for all. Returns whether a disparity is not finite (the caller raises: checked here rather than by a
+        torch pass over the map)."""
         H, W = d.shape
         wp = key_src.shape[1]
-        bits = np.empty(W, np.float32)  # d' written here is read back as int32: its z-buffer key
-        as_int = bits.view(np.int32)
-        bad = 0
+        a00, a01, a02, a10, a11, a12 = A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2]
+        a20, a21, a22 = A[2, 0], A[2, 1], A[2, 2]
+        m0, m1, m2 = a[0], a[1], a[2]
+        bad = False
+        xs = np.arange(W).astype(np.float32)  # (a float32 column index: int64 to float conversions do not vectorise)
         for y in range(y0, y1):
             yf = _F(y)
-            for x in range(W):
-                xf = _F(x)
-                dv = d[y, x]
-                bad += not np.isfinite(dv)
-                pz = ((A[2, 0] * xf + A[2, 2]) + A[2, 1] * yf) + dv * a[2]
-                ok = (dv >= 0) & (pz > _MIN)
-                if has_valid:
-                    ok = ok & valid[y, x]
+            r0, r1, r2 = a01 * yf, a11 * yf, a21 * yf
+            d_row, ok_row = d[y], valid[min(y, valid.shape[0] - 1)]
+            src_row, new_row, at_row = key_src[y + _PAD, _PAD:_PAD + W], key_new[y + _PAD, _PAD:_PAD + W], at[y]
+            for x in range(W):  # (no branch inside: a loop-invariant one kept it from vectorising)
+                xf = xs[x]
+                dv = d_row[x]
+                bad |= not np.isfinite(dv)
+                pz = ((a20 * xf + a22) + r2) + dv * m2
+                ok = (dv >= 0) & (pz > _MIN) & ok_row[x]
                 inv = _F(1.0) / max(pz, _MIN)
-                d_new = dv * inv
-                if has_var:
-                    var_p[y + _PAD, x + _PAD] = var[y, x] * inv * inv
-                key_src[y + _PAD, x + _PAD] = dv if ok else -_BIG
-                key_new[y + _PAD, x + _PAD] = d_new if ok else -_BIG
-                tx = np.rint((((A[0, 0] * xf + A[0, 2]) + A[0, 1] * yf) + dv * a[0]) * inv)
-                ty = np.rint((((A[1, 0] * xf + A[1, 2]) + A[1, 1] * yf) + dv * a[1]) * inv)
+                src_row[x] = dv if ok else -_BIG
+                new_row[x] = dv * inv if ok else -_BIG
+                tx = np.rint((((a00 * xf + a02) + r0) + dv * m0) * inv)
+                ty = np.rint((((a10 * xf + a12) + r1) + dv * m1) * inv)
                 tx = min(max(tx, _F(-_PAD)), _F(W + 1))
                 ty = min(max(ty, _F(-_PAD)), _F(H + 1))
-                at[y, x] = (np.int32(ty) + _PAD) * wp + np.int32(tx) + _PAD
-                bits[x] = d_new
-            for x in range(W):
-                # the bits of d' >= 0 as int32 order like the values: the maximum key is the nearest surface
-                keys[y, x] = as_int[x] if key_new[y + _PAD, x + _PAD] >= 0 else -1
+                at_row[x] = (np.int32(ty) + _PAD) * np.int32(wp) + np.int32(tx) + _PAD
+            if has_var:
+                var_row, var_prow = var[y], var_p[y + _PAD, _PAD:_PAD + W]
+                for x in range(W):
+                    inv = _F(1.0) / max(((a20 * xs[x] + a22) + r2) + d_row[x] * m2, _MIN)
+                    var_prow[x] = var_row[x] * inv * inv
         if has_var:  # replicated margins: a target just outside takes the border's variance
             for y in range(y0 + _PAD, y1 + _PAD):
                 for x in range(_PAD):
@@ -100,13 +117,17 @@ if AVAILABLE:
         return bad
 
     @_jit
-    def _scatter(at, keys, zbuf, var_p, has_var):
-        """Step 1, sequential part: the z-buffer keeps each cell's largest key; the variance's margin rows."""
+    def _scatter(at, key_new, zbuf, var_p, has_var):
+        """Step 1, sequential part: the z-buffer keeps each cell's largest key, the bits of ``d' >= 0`` as int32
+        (they order like the values: the maximum is the nearest surface; the ``-big`` of an invalid point is a
+        negative key, below the empty cells' -1); the variance's margin rows."""
         H, W = at.shape
         flat = zbuf.reshape(-1)
+        keys = key_new.view(np.int32)
         for y in range(H):
+            at_row, key_row = at[y], keys[y + _PAD, _PAD:_PAD + W]
             for x in range(W):
-                key, cell = keys[y, x], at[y, x]
+                key, cell = key_row[x], at_row[x]
                 if key > flat[cell]:
                     flat[cell] = key
         if has_var:
@@ -115,160 +136,183 @@ if AVAILABLE:
             for y in range(_PAD + H, var_p.shape[0]):
                 var_p[y, :] = var_p[_PAD + H - 1, :]
 
-    @_jit
-    def _targets(zbuf, zval, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1,
-                 est_out, var_out, landed_out, fill_holes, process_noise, hole_variance, later,
-                 disparity, variance, confidence):
+    @_jit(inline="always")
+    def _sent_back(G, r0, r1, r2, e0, e1, e2, xf, d):
+        """Target pixel ``(xf, y)`` at disparity ``d`` sent back into frame ``t-1`` (G's row terms ``r*`` hold the
+        ``y`` parts, added in the torch path's order): ``(h_z, 1 / max(h_z, min), x, y)``."""
+        hz = ((G[6] * xf + G[8]) + r2) + d * e2
+        inv_h = _F(1.0) / max(hz, _MIN)
+        sx = (((G[0] * xf + G[2]) + r0) + d * e0) * inv_h
+        sy = (((G[3] * xf + G[5]) + r1) + d * e1) * inv_h
+        return hz, inv_h, sx, sy
+
+    @_jit(inline="always")
+    def _blend(g0, g1, g2, g3, expect, fx, fy, tol):
+        """The four source neighbours blended bilinearly where on the expected surface (``expect`` elsewhere):
+        ``(value, on-surface flags of the four)``."""
+        s0 = abs(g0 - expect) < tol
+        s1 = abs(g1 - expect) < tol
+        s2 = abs(g2 - expect) < tol
+        s3 = abs(g3 - expect) < tol
+        value = _lerp(_lerp(g0 if s0 else expect, g1 if s1 else expect, fx),
+                      _lerp(g2 if s2 else expect, g3 if s3 else expect, fx), fy)
+        return value, s0, s1, s2, s3
+
+    @_jit(inline="always")
+    def _refined(G, r0, r1, r2, e0, e1, e2, a20, a21, a22, m2, tol, W, H, xf, est, g0, g1, g2, g3):
+        """One refinement step of target ``(xf, y)`` from ``est``, its four source neighbours ``g*`` gathered:
+        ``(new estimate, h_z > min, q_z > min, whether the nearest neighbour is on the start's surface)``."""
+        hz, inv_h, sx, sy = _sent_back(G, r0, r1, r2, e0, e1, e2, xf, est)
+        fx = sx - np.floor(min(max(sx, _F(-_PAD)), _F(W + 1)))
+        fy = sy - np.floor(min(max(sy, _F(-_PAD)), _F(H + 1)))
+        d_src, s0, s1, s2, s3 = _blend(g0, g1, g2, g3, est * inv_h, fx, fy, tol)
+        qz = ((a22 + sx * a20) + sy * a21) + d_src * m2
+        right, down = np.rint(fx) > 0, np.rint(fy) > 0
+        nearest_same = (s3 if right else s2) if down else (s1 if right else s0)
+        return d_src / max(qz, _MIN), hz > _MIN, qz > _MIN, nearest_same
+
+    @_jit(error_model="numpy")
+    def _targets(zbuf, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1, fill_holes,
+                 process_noise, hole_variance, later, landed, disparity, variance, confidence):
         """Steps 2 and 3 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big:
         none). A row without a landed pixel is filled later, from the whole image (marked in ``later``).
 
         A row at a time, each stage split into loops without gathers (compiled to SIMD code) and loops that only
-        gather: with the gathers inside, the loop stays scalar and several times slower.
+        gather: with the gathers inside, the loop stays scalar and several times slower. The compute loops touch
+        few arrays (each pair of arrays a loop writes and reads needs a run-time overlap check, and LLVM gives up
+        vectorising beyond a few) and recompute cheap values rather than store them; a select between two rules
+        or a test of a loop-invariant flag inside one, or an int64 to float conversion, also keeps it scalar.
         """
-        H, W = est_out.shape
+        H, W = landed.shape
         wp = key_src.shape[1]
+        uwp = np.uint32(wp)  # (unsigned indices: no test for negative ones in the gathers)
         src_flat, new_flat, var_flat = key_src.reshape(-1), key_new.reshape(-1), var_p.reshape(-1)
+        Gt = (G[0, 0], G[0, 1], G[0, 2], G[1, 0], G[1, 1], G[1, 2], G[2, 0], G[2, 1], G[2, 2])
+        e0, e1, e2 = e[0], e[1], e[2]
+        a20, a21, a22, m2 = A[2, 0], A[2, 1], A[2, 2], a[2]
         lowest = _BIG
-        xs = np.arange(W).astype(np.float32)
-        # the nearest surface within one pixel: 3x3 maximum of the keys, separable (rows, then columns); the float
-        # view of the int32 maximum is its d'
+        xs = np.arange(W).astype(np.float32)  # (a float32 column index, for the reason above)
+        # the nearest surface within one pixel: 3x3 maximum of the keys, separable (rows here, columns below)
         rows_max = np.empty((y1 - y0 + 2, W), np.int32)
         for r in range(y1 - y0 + 2):
-            j = y0 + r + _PAD - 1
+            z, out = zbuf[y0 + r + _PAD - 1], rows_max[r]
             for x in range(W):
-                i = x + _PAD
-                rows_max[r, x] = max(max(zbuf[j, i - 1], zbuf[j, i]), zbuf[j, i + 1])
-        near_row = np.empty(W, np.int32)
-        near_val = near_row.view(np.float32)
-        est_r, land_r, fall_r = np.empty(W, np.float32), np.empty(W, np.bool_), np.empty(W, np.bool_)
-        sx_r, sy_r, ex_r, hz_r = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(
+                out[x] = max(max(z[x + _PAD - 1], z[x + _PAD]), z[x + _PAD + 1])
+        cand_r, est_r, var_r, fill_r = (np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32),
+                                        np.empty(W, np.float32))
+        g0, g1, g2, g3 = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(
             W, np.float32)
-        fx_r, fy_r = np.empty(W, np.float32), np.empty(W, np.float32)
-        at = np.empty(W, np.int64)
-        g = np.empty((4, W), np.float32)
+        land_r, fall_r = np.empty(W, np.bool_), np.empty(W, np.bool_)
+        at = np.empty(W, np.uint32)
         for y in range(y0, y1):
             yf = _F(y)
-            r = y - y0
             # row-constant parts of the back-projection G (x, y, 1), added in the torch path's order
-            r0, r1, r2 = G[0, 1] * yf, G[1, 1] * yf, G[2, 1] * yf
+            r0, r1, r2 = Gt[1] * yf, Gt[4] * yf, Gt[7] * yf
+            m_a, m_b, m_c, z_own = rows_max[y - y0], rows_max[y - y0 + 1], rows_max[y - y0 + 2], zbuf[
+                y + _PAD, _PAD:_PAD + W]
             # -- the candidate (nearest surface, or what landed on the pixel on the same surface), sent back at its
-            # depth into frame t-1: the source pixel it falls in
+            # depth into frame t-1: the source pixel it falls in. cand_r keeps it, -1 where no surface is near.
             for x in range(W):
-                xf = xs[x]
-                near = max(max(rows_max[r, x], rows_max[r + 1, x]), rows_max[r + 2, x])
-                near_row[x] = near
-                own = zbuf[y + _PAD, x + _PAD]
-                near_v = near_val[x] if near >= 0 else _F(0.0)
-                own_v = zval[y + _PAD, x + _PAD] if own >= 0 else _F(0.0)
+                near = max(max(m_a[x], m_b[x]), m_c[x])
+                own = z_own[x]
+                near_v = _key_value(near) if near >= 0 else _F(0.0)
+                own_v = _key_value(own) if own >= 0 else _F(0.0)
                 cand = own_v if near_v - own_v < tol else near_v
-                hz = ((G[2, 0] * xf + G[2, 2]) + r2) + cand * e[2]
-                inv_h = _F(1.0) / max(hz, _MIN)
-                sx = (((G[0, 0] * xf + G[0, 2]) + r0) + cand * e[0]) * inv_h
-                sy = (((G[1, 0] * xf + G[1, 2]) + r1) + cand * e[1]) * inv_h
-                hz_r[x] = hz
-                ex_r[x] = inv_h * cand
+                _, _, sx, sy = _sent_back(Gt, r0, r1, r2, e0, e1, e2, xs[x], cand)
                 px = np.rint(min(max(sx, _F(-1.0)), _F(W)))
                 py = np.rint(min(max(sy, _F(-1.0)), _F(H)))
-                at[x] = (np.int64(py) + _PAD) * wp + np.int64(px) + _PAD
-            for x in range(W):
-                c = at[x]
-                g[0, x] = src_flat[c]
-                g[1, x] = new_flat[c]
+                at[x] = np.uint32((np.int32(py) + _PAD) * np.int32(wp) + np.int32(px) + _PAD)
+                cand_r[x] = cand if near >= 0 else _F(-1.0)
             if has_var:
                 for x in range(W):
-                    var_out[y, x] = var_flat[at[x]]
-            # -- accepted when that pixel's disparity is the one the candidate implies there; its d' is the start
-            for x in range(W):
-                near = near_row[x]
-                landed = (abs(g[0, x] - ex_r[x]) < tol) & (hz_r[x] > _MIN) & (near >= 0)
-                est = g[1, x]
-                fall_r[x] = (est >= 0) & (near >= 0) & ~landed
-                land_r[x] = landed
-                est_r[x] = max(est, _F(0.0))
-            # -- inverse-warp refinement; the first step decides the fallbacks and re-checks every target
-            for step in range(iterations):
-                for x in range(W):
-                    xf = xs[x]
-                    est = est_r[x]
-                    hz = ((G[2, 0] * xf + G[2, 2]) + r2) + est * e[2]
-                    inv_h = _F(1.0) / max(hz, _MIN)
-                    sx = (((G[0, 0] * xf + G[0, 2]) + r0) + est * e[0]) * inv_h
-                    sy = (((G[1, 0] * xf + G[1, 2]) + r1) + est * e[1]) * inv_h
-                    hz_r[x], sx_r[x], sy_r[x], ex_r[x] = hz, sx, sy, est * inv_h
-                    fx0 = np.floor(min(max(sx, _F(-_PAD)), _F(W + 1)))
-                    fy0 = np.floor(min(max(sy, _F(-_PAD)), _F(H + 1)))
-                    fx_r[x], fy_r[x] = sx - fx0, sy - fy0
-                    at[x] = (np.int64(fy0) + _PAD) * wp + np.int64(fx0) + _PAD
-                for x in range(W):  # the four source neighbours
                     c = at[x]
-                    g[0, x], g[1, x] = src_flat[c], src_flat[c + 1]
-                    g[2, x], g[3, x] = src_flat[c + wp], src_flat[c + wp + 1]
+                    g0[x], g1[x], var_r[x] = src_flat[c], new_flat[c], var_flat[c]
+            else:
                 for x in range(W):
-                    est, expect, fx, fy = est_r[x], ex_r[x], fx_r[x], fy_r[x]
-                    g0, g1, g2, g3 = g[0, x], g[1, x], g[2, x], g[3, x]
-                    s0 = abs(g0 - expect) < tol
-                    s1 = abs(g1 - expect) < tol
-                    s2 = abs(g2 - expect) < tol
-                    s3 = abs(g3 - expect) < tol
-                    d_src = _lerp(_lerp(g0 if s0 else expect, g1 if s1 else expect, fx),
-                                  _lerp(g2 if s2 else expect, g3 if s3 else expect, fx), fy)
-                    qz = ((A[2, 2] + sx_r[x] * A[2, 0]) + sy_r[x] * A[2, 1]) + d_src * a[2]
-                    new = d_src / max(qz, _MIN)
-                    hz_ok = hz_r[x] > _MIN
-                    landed = land_r[x]
-                    if step == 0:
-                        # the nearest neighbour must be on the start's surface, and the step small
-                        right, down = np.rint(fx) > 0, np.rint(fy) > 0
-                        nearest_same = (s3 if right else s2) if down else (s1 if right else s0)
-                        landed = (landed | fall_r[x]) & nearest_same & (abs(new - est) <= tol) & hz_ok
-                        land_r[x] = landed
-                    est_r[x] = new if hz_ok & (qz > _MIN) & landed else est
-            row_lowest = _BIG
+                    c = at[x]
+                    g0[x], g1[x] = src_flat[c], new_flat[c]
+            # -- accepted when that pixel's disparity is the one the candidate implies there; its d' is the start
+            # of the refinement, whose first look-up cell is found here too
             for x in range(W):
-                est_out[y, x] = est_r[x]
-                landed_out[y, x] = land_r[x]
-                row_lowest = min(row_lowest, est_r[x] if land_r[x] else _BIG)
-            lowest = min(lowest, row_lowest)
-            later[y] = fill_holes and row_lowest >= _BIG
-            if not later[y]:
-                _fill_row(y, est_out, var_out, landed_out, has_var, fill_holes, _BIG, process_noise, hole_variance,
-                          disparity, variance, confidence)
+                xf = xs[x]
+                cand = max(cand_r[x], _F(0.0))
+                hz, inv_h, _, _ = _sent_back(Gt, r0, r1, r2, e0, e1, e2, xf, cand)
+                near_ok = cand_r[x] >= 0
+                ok = (abs(g0[x] - inv_h * cand) < tol) & (hz > _MIN) & near_ok
+                est = g1[x]
+                fall_r[x] = (est >= 0) & near_ok & ~ok
+                land_r[x] = ok
+                est = max(est, _F(0.0))
+                est_r[x] = est
+                _, _, sx, sy = _sent_back(Gt, r0, r1, r2, e0, e1, e2, xf, est)
+                fx0 = np.floor(min(max(sx, _F(-_PAD)), _F(W + 1)))
+                fy0 = np.floor(min(max(sy, _F(-_PAD)), _F(H + 1)))
+                at[x] = np.uint32((np.int32(fy0) + _PAD) * np.int32(wp) + np.int32(fx0) + _PAD)
+            # -- inverse-warp refinement: the four source neighbours of the estimate sent back, blended where on its
+            # surface and moved forward (eq. 1); the first step also decides the fallbacks and re-checks every
+            # target (the nearest neighbour on the surface, a small step). Two loops: a select between the two
+            # rules inside one keeps it scalar.
+            for step in range(iterations):
+                if step > 0:
+                    for x in range(W):
+                        _, _, sx, sy = _sent_back(Gt, r0, r1, r2, e0, e1, e2, xs[x], est_r[x])
+                        fx0 = np.floor(min(max(sx, _F(-_PAD)), _F(W + 1)))
+                        fy0 = np.floor(min(max(sy, _F(-_PAD)), _F(H + 1)))
+                        at[x] = np.uint32((np.int32(fy0) + _PAD) * np.int32(wp) + np.int32(fx0) + _PAD)
+                for x in range(W):
+                    c = at[x]
+                    g0[x], g1[x], g2[x], g3[x] = src_flat[c], src_flat[c + 1], src_flat[c + uwp], src_flat[c + uwp + 1]
+                if step == 0:
+                    for x in range(W):
+                        est = est_r[x]
+                        new, hz_ok, qz_ok, nearest_same = _refined(Gt, r0, r1, r2, e0, e1, e2, a20, a21, a22, m2, tol,
+                                                                   W, H, xs[x], est, g0[x], g1[x], g2[x], g3[x])
+                        ok = (land_r[x] | fall_r[x]) & nearest_same & (abs(new - est) <= tol) & hz_ok
+                        land_r[x] = ok
+                        est_r[x] = new if hz_ok & qz_ok & ok else est
+                else:
+                    for x in range(W):
+                        est = est_r[x]
+                        new, hz_ok, qz_ok, _ = _refined(Gt, r0, r1, r2, e0, e1, e2, a20, a21, a22, m2, tol, W, H,
+                                                        xs[x], est, g0[x], g1[x], g2[x], g3[x])
+                        est_r[x] = new if hz_ok & qz_ok & land_r[x] else est
+            # -- outputs: the background hole fill (predict.fill_holes_background), variance and confidence
+            land_out, d_out, v_out, c_out = landed[y], disparity[y], variance[y], confidence[y]
+            for x in range(W):
+                land_out[x] = land_r[x]
+            later[y] = False
+            if fill_holes:  # nearest landed value on the left, then the minimum with the one on the right
+                last = low = _BIG
+                for x in range(W):
+                    value = est_r[x] if land_r[x] else _BIG
+                    low = min(low, value)
+                    last = est_r[x] if land_r[x] else last
+                    fill_r[x] = last
+                lowest = min(lowest, low)
+                later[y] = low >= _BIG
+                if later[y]:  # no landed pixel: filled with the image's smallest landed value
+                    continue
+                last = _BIG
+                for x in range(W - 1, -1, -1):
+                    last = est_r[x] if land_r[x] else last
+                    d_out[x] = min(fill_r[x], last)
+            else:
+                for x in range(W):
+                    d_out[x] = est_r[x] if land_r[x] else _F(0.0)
+            for x in range(W):
+                v = (var_r[x] + process_noise) if has_var else process_noise
+                v_out[x] = v if land_r[x] else hole_variance
+                c_out[x] = _F(1.0) / (_F(1.0) + v) if land_r[x] else _F(0.0)
         return lowest
 
-    @_jit(inline="always")
-    def _fill_row(y, est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance,
-                  disparity, variance, confidence):
-        """Step 3 for row ``y``: the background hole fill (predict.fill_holes_background) and the outputs."""
-        W = est.shape[1]
-        if fill_holes:
-            # nearest landed value on the left (+big: none), then the minimum with the one on the right
-            last = _BIG
-            for x in range(W):
-                if landed[y, x]:
-                    last = est[y, x]
-                disparity[y, x] = last
-            row_fill = image_fill if last >= _BIG else _BIG  # a row without a landed pixel
-            last = _BIG
-            for x in range(W - 1, -1, -1):
-                if landed[y, x]:
-                    last = est[y, x]
-                disparity[y, x] = min(min(disparity[y, x], last), row_fill)
-        else:
-            for x in range(W):
-                disparity[y, x] = est[y, x] if landed[y, x] else _F(0.0)
-        for x in range(W):
-            v = (est_var[y, x] + process_noise) if has_var else process_noise
-            variance[y, x] = v if landed[y, x] else hole_variance
-            confidence[y, x] = _F(1.0) / (_F(1.0) + v) if landed[y, x] else _F(0.0)
-
     @_jit
-    def _fill(est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance, rows,
-              disparity, variance, confidence):
-        """Step 3 for the marked ``rows`` (those without a landed pixel, which take the image's fill value)."""
-        for y in range(est.shape[0]):
+    def _fill(image_fill, hole_variance, rows, disparity, variance, confidence):
+        """Step 3 for the marked ``rows``, those without a landed pixel: the image's fill value, all holes."""
+        for y in range(disparity.shape[0]):
             if rows[y]:
-                _fill_row(y, est, est_var, landed, has_var, fill_holes, image_fill, process_noise, hole_variance,
-                          disparity, variance, confidence)
+                disparity[y, :] = image_fill
+                variance[y, :] = hole_variance
+                confidence[y, :] = _F(0.0)
 
 
 _workspace_store = threading.local()
@@ -281,11 +325,10 @@ def _workspace(H: int, W: int, has_var: bool) -> tuple[np.ndarray, ...]:
     if store is None or store[0] != (H, W):
         hp, wp = H + 2 * _PAD + 1, W + 2 * _PAD + 1
         arrays = (np.full((hp, wp), -_BIG, np.float32), np.full((hp, wp), -_BIG, np.float32),
-                  np.empty((hp, wp), np.float32), np.empty((hp, wp), np.int32), np.empty((H, W), np.int32),
-                  np.empty((H, W), np.int32))
+                  np.empty((hp, wp), np.float32), np.empty((hp, wp), np.int32), np.empty((H, W), np.int32))
         store = _workspace_store.arrays = ((H, W), arrays)
-    key_src, key_new, var_p, zbuf, at, keys = store[1]
-    return key_src, key_new, var_p if has_var else var_p[:1, :1], zbuf, at, keys
+    key_src, key_new, var_p, zbuf, at = store[1]
+    return key_src, key_new, var_p if has_var else var_p[:1, :1], zbuf, at
 
 
 def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | None, A: torch.Tensor,
@@ -312,7 +355,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     B, H, W = d.shape
     threads = max(1, threads or torch.get_num_threads())
     dn = d.numpy()
-    okn = valid.numpy() if valid is not None else np.ones((B, 1, 1), np.bool_)
+    okn = valid.numpy() if valid is not None else np.ones((B, 1, W), np.bool_)
     varn = var.numpy() if var is not None else np.zeros((B, 1, 1), np.float32)
     An, an, Gn, en = (t.numpy() for t in (A, a, G, e))
     tol = _F(surface_tolerance)
@@ -324,24 +367,20 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     noise, hole = _F(process_noise), _F(hole_variance)
 
     def item(i: int, run) -> bool:
-        key_src, key_new, var_p, zbuf, at, keys = _workspace(H, W, var is not None)
-        if any(run(lambda band: _move_sources(dn[i], okn[i], valid is not None, varn[i], var is not None, An[i],
-                                              an[i], band[0], band[1], key_src, key_new, var_p, at, keys), bands)):
+        key_src, key_new, var_p, zbuf, at = _workspace(H, W, var is not None)
+        if any(run(lambda band: _move_sources(dn[i], okn[i], varn[i], var is not None, An[i], an[i],
+                                              band[0], band[1], key_src, key_new, var_p, at), bands)):
             return False
         zbuf.fill(-1)
-        _scatter(at, keys, zbuf, var_p, var is not None)
-        # the scatter is done: its cells and keys buffers hold the estimates now (no fresh pages to fault in)
-        est = at.view(np.float32)
-        est_var = keys.view(np.float32) if var is not None else est
+        _scatter(at, key_new, zbuf, var_p, var is not None)
         later = np.empty(H, np.bool_)
-        outs = (disparity[i], variance[i], confidence[i])
-        lows = run(lambda band: _targets(zbuf, zbuf.view(np.float32), key_src, key_new, var_p, var is not None,
+        outs = (landed[i], disparity[i], variance[i], confidence[i])
+        lows = run(lambda band: _targets(zbuf, key_src, key_new, var_p, var is not None,
                                          An[i], an[i], Gn[i], en[i], tol, refine_iterations, band[0], band[1],
-                                         est, est_var, landed[i], fill_holes, noise, hole, later, *outs), bands)
+                                         fill_holes, noise, hole, later, *outs), bands)
         if later.any():  # rows without a landed pixel: the smallest landed value of the image (0 if none)
             low = min(lows)
-            image_fill = _F(0.0) if low >= _BIG else _F(low)
-            _fill(est, est_var, landed[i], var is not None, fill_holes, image_fill, noise, hole, later, *outs)
+            _fill(_F(0.0) if low >= _BIG else _F(low), hole, later, *outs[1:])
         return True
 
     workers = Workers(threads)
