@@ -84,9 +84,15 @@ if AVAILABLE:
         four pairs per pass (each pass over a row costs a load and a store per element; the adds are cheap)."""
         for u in range(col.shape[0] - 1):
             pairs[u] = col[u] + col[u + 1]
-        for x in range(out.shape[0]):
-            out[x] = col[x]
         i = 0
+        if r >= 4:  # the first column and the first four pairs in one pass
+            p0, p1, p2, p3 = pairs[1:], pairs[3:], pairs[5:], pairs[7:]
+            for x in range(out.shape[0]):
+                out[x] = col[x] + ((p0[x] + p1[x]) + (p2[x] + p3[x]))
+            i = 4
+        else:
+            for x in range(out.shape[0]):
+                out[x] = col[x]
         while i + 4 <= r:
             p0, p1, p2, p3 = pairs[1 + 2 * i:], pairs[3 + 2 * i:], pairs[5 + 2 * i:], pairs[7 + 2 * i:]
             for x in range(out.shape[0]):
@@ -130,11 +136,10 @@ if AVAILABLE:
         # column of _INVALID either side (columns -1 and w): the winner's neighbours are then plain reads
         costp = np.full((num + 2, w + 2), big, np.int16)
         cost = costp[1: num + 1]
-        bigrow = np.full(w, big, np.int16)
         best = np.empty(w, np.int16)
         jbest = np.empty(w, np.int16)
         second = np.empty(w, np.int16)
-        lowest = np.empty(w, np.int16)  # the lowest cost of the candidates up to j - 2
+        lowest = np.empty(w, np.int16)  # the lowest cost of the candidates up to j - 2 (best, two steps late)
         cps = np.empty(w, np.int16)
         cms = np.empty(w, np.int16)
         near_l = np.empty(w, np.int16)
@@ -176,14 +181,13 @@ if AVAILABLE:
                     out[x] = big
                 # the running winner (the first lowest: a strict <) and the runner-up beyond +-1 candidate of it:
                 # when the winner moves to j, the lowest cost up to j - 2; then every candidate from j + 2 on
-                older = cost[j - 2, 1: w + 1] if j > 1 else bigrow
                 jj, jm2 = np.int16(j), np.int16(j - 2)
                 for x in range(w):
                     c, b, jb, s = out[x], best[x], jbest[x], second[x]
-                    low = min(lowest[x], older[x])
+                    low = lowest[x]
                     moved = c < b
                     s_far = min(s, c) if jb <= jm2 else s
-                    lowest[x] = low
+                    lowest[x] = b  # read at candidate j + 1: the lowest up to j - 1
                     second[x] = low if moved else s_far
                     jbest[x] = jj if moved else jb
                     best[x] = min(b, c)
