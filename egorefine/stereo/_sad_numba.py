@@ -70,9 +70,16 @@ if AVAILABLE:
         for yp in range(y0, y1):
             xsobel_row(grey, min(max(yp - top, 0), H - 1), cap, row)
             q = out[yp]
-            for xp in range(q.shape[0]):
-                v = np.rint(row[min(max(xp - left, 0), W - 1)] * unit)
-                q[xp] = np.int16(min(max(v, -limit), limit) + limit)
+            inner = q[left: left + W]
+            for x in range(W):
+                v = np.rint(row[x] * unit)
+                inner[x] = np.int16(min(max(v, -limit), limit) + limit)
+            # the replicated border columns (a loop without index clamps vectorises)
+            first, last, tail = q[left], q[left + W - 1], q[left + W:]
+            for xp in range(left):
+                q[xp] = first
+            for xp in range(tail.shape[0]):
+                tail[xp] = last
 
     @_jit(inline="always")
     def _absdiff(a, b):
