@@ -24,6 +24,8 @@ would wake torch's OpenMP threads, which then spin beside the kernels.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import torch
 
@@ -61,15 +63,15 @@ if AVAILABLE:
 
     @_jit
     def _quantise_rows(grey, cap, unit, c, top, left, y0, y1, out):
-        """Rows ``y0:y1`` of :func:`egorefine.stereo.fast._quantise`'s padded int16 image ``out`` (replicated
-        borders: ``top`` rows above the image, ``left`` columns left of it): ``round(unit * g) + c`` clipped to
-        ``[0, 2c]``, ``g`` the clipped x-Sobel response and ``unit = 255 * scale`` (float32 operations)."""
+        """Rows ``y0:y1`` of :func:`egorefine.stereo.fast._quantise`'s padded int16 image (replicated borders:
+        ``top`` rows above the image, ``left`` columns left of it) into ``out[0 : y1 - y0]``: ``round(unit * g) + c``
+        clipped to ``[0, 2c]``, ``g`` the clipped x-Sobel response and ``unit = 255 * scale`` (float32 operations)."""
         H, W = grey.shape
         row = np.empty(W, np.float32)
         limit = np.float32(c)
         for yp in range(y0, y1):
             xsobel_row(grey, min(max(yp - top, 0), H - 1), cap, row)
-            q = out[yp]
+            q = out[yp - y0]
             inner = q[left: left + W]
             for x in range(W):
                 v = np.rint(row[x] * unit)
@@ -268,6 +270,53 @@ if AVAILABLE:
                 varrow[x] = var * keep + (one - keep) * bigvar
 
 
+    @_jit
+    def _match_rows(grey_l, grey_r, y0, y1, cap, unit, c, max_d, num, r, guard, uniq, t_need, c_level, flt,
+                    min_d_pos, subpixel, parabola, disparity, valid, variance):
+        """Output rows ``[y0, y1)`` of one grey float32 pair ``(H, W)``: the quantised prefiltered rows the band needs
+        (:func:`_quantise_rows`, its own copy: bands share no buffer), then :func:`_band` into the rows
+        ``y0:y1`` of ``disparity``, ``valid``, ``variance``. One call per band: one hand-off to a worker thread."""
+        W = grey_l.shape[1]
+        rows = y1 - y0 + 2 * r
+        lq = np.empty((rows, W + 2 * r), np.int16)
+        rq = np.empty((rows, W + 2 * r + max_d), np.int16)
+        _quantise_rows(grey_l, cap, unit, c, r, r, y0, y0 + rows, lq)
+        _quantise_rows(grey_r, cap, unit, c, r, r + max_d, y0, y0 + rows, rq)
+        _band(lq, rq, 0, y1 - y0, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d_pos, subpixel, parabola,
+              disparity[y0:y1], valid[y0:y1], variance[y0:y1])
+
+
+def _run(threads: int, fn, items: list) -> None:
+    """``fn(item)`` for every item, on the calling thread and ``threads - 1`` threads of the
+    :class:`~egorefine.core._jit.Workers` pool, each taking the next item when it is free.
+
+    The caller works too rather than waiting for the pool: on a busy machine a wake-up of a pool thread can wait
+    a time slice, and the items themselves keep the threads balanced.
+    """
+    if threads <= 1 or len(items) <= 1:
+        for item in items:
+            fn(item)
+        return
+    queue = iter(items)
+    lock = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with lock:
+                item = next(queue, None)
+            if item is None:
+                return
+            fn(item)
+
+    pool = Workers(threads).pool
+    helpers = [pool.submit(work) for _ in range(min(threads, len(items)) - 1)]
+    try:
+        work()
+    finally:
+        for helper in helpers:
+            helper.result()
+
+
 def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
                        scale: int, opts: dict, threads: int | None = None
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -284,19 +333,22 @@ def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_
     b, _, h, w = left.shape
     r, num = block // 2, max_d - min_d
     threads = max(1, threads or torch.get_num_threads())
-    lq, rq, (guard, uniq, t_need, c_level, flt) = _setup(left, right, max_d, min_d, block, cap, scale, opts)
+    guard, uniq, t_need, c_level, flt = _settings(max_d, min_d, block, cap, scale, opts)
+    grey_l, grey_r = (g.detach()[:, 0].contiguous().numpy() for g in (left, right))
     disparity = np.empty((b, h, w), np.float32)
     valid = np.empty((b, h, w), np.bool_)
     variance = np.empty((b, h, w), np.float32)
     parts = max(1, min(threads * 2, h // _MIN_BAND_ROWS))
     tasks = [(i, y0, y1) for i in range(b) for y0, y1 in _bands(h, parts)]
+    quant = (np.float32(cap), np.float32(255.0 * scale), round(255.0 * scale * cap))
 
     def task(t: tuple[int, int, int]) -> None:
         i, y0, y1 = t
-        _band(lq[i], rq[i], y0, y1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d > 0,
-              bool(opts["subpixel"]), opts["subpixel_fit"] == "parabola", disparity[i], valid[i], variance[i])
+        _match_rows(grey_l[i], grey_r[i], y0, y1, *quant, max_d, num, r, guard, uniq, t_need, c_level, flt,
+                    min_d > 0, bool(opts["subpixel"]), opts["subpixel_fit"] == "parabola", disparity[i], valid[i],
+                    variance[i])
 
-    Workers(threads).map(task, tasks)
+    _run(threads, task, tasks)
     return (torch.from_numpy(disparity).unsqueeze(1), torch.from_numpy(valid).unsqueeze(1),
             torch.from_numpy(variance).unsqueeze(1))
 
@@ -311,8 +363,8 @@ def _quantised(grey: torch.Tensor, cap: float, scale: int, r: int, left: int, th
     out = np.empty((b, h + 2 * r, left + w + r), np.int16)
     args = (np.float32(cap), np.float32(255.0 * scale), round(255.0 * scale * cap), r, left)
     threads = max(1, threads or torch.get_num_threads())
-    Workers(threads).map(lambda job: _quantise_rows(g[job[0]], *args, *job[1], out[job[0]]),
-                         [(i, rows) for i in range(b) for rows in _bands(h + 2 * r, threads)])
+    _run(threads, lambda job: _quantise_rows(g[job[0]], *args, *job[1], out[job[0], job[1][0]:job[1][1]]),
+         [(i, rows) for i in range(b) for rows in _bands(h + 2 * r, threads)])
     return out
 
 
@@ -321,9 +373,14 @@ def _setup(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, bloc
     """Padded quantised images ``lq``, ``rq`` (see :func:`_band`) and the kernel's settings
     ``(guard, uniq, t_need, c_level, flt)``."""
     r = block // 2
-    num = max_d - min_d
     lq = _quantised(left, cap, scale, r, r)
     rq = _quantised(right, cap, scale, r, r + max_d)
+    return lq, rq, _settings(max_d, min_d, block, cap, scale, opts)
+
+
+def _settings(max_d: int, min_d: int, block: int, cap: float, scale: int, opts: dict) -> tuple:
+    """The kernel's settings ``(guard, uniq, t_need, c_level, flt)`` (see :func:`_band`)."""
+    num = max_d - min_d
     area = float(block * block)
     uniq = opts["uniqueness_ratio"] > 0
     flt = np.array([1.0 / (255.0 * scale), opts["cost_floor"] * area, torch.finfo(torch.float32).eps * 16 * area,
@@ -333,7 +390,7 @@ def _setup(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, bloc
     t_need = float(np.float32(opts["texture_threshold"] * area * 255.0 * scale))
     t_need = int(min(max(np.ceil(t_need), -_INVALID), _INVALID))
     c_level = np.int16(round(255.0 * scale * cap))
-    return lq, rq, (guard, uniq, t_need, c_level, flt)
+    return guard, uniq, t_need, c_level, flt
 
 
 def match_sad_windows(left: torch.Tensor, right: torch.Tensor, boxes: list[list[tuple[int, int, int, int]]],
@@ -371,7 +428,7 @@ def match_sad_windows(left: torch.Tensor, right: torch.Tensor, boxes: list[list[
         _band(lw, rw, a0, a1, max_d, num, r, guard, uniq, t_need, c_level, flt, min_d > 0, bool(opts["subpixel"]),
               opts["subpixel_fit"] == "parabola", *out, wx0)
 
-    Workers(threads).map(task, tasks)
+    _run(threads, task, tasks)
     for i, y0, y1, x0, x1, wx0, out in windows:  # the boxes, without their margins
         for full, part in zip((disparity, valid, variance), out, strict=True):
             full[i, y0:y1, x0:x1] = part[:, x0 - wx0:x1 - wx0]
