@@ -32,44 +32,100 @@ __all__ = ["AVAILABLE", "close_cracks", "finish_prediction", "edge_variance", "e
 if AVAILABLE:
 
     @_jit(inline="always")
-    def _look_up(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, x, y, dv):
-        """close_cracks for hole pixel ``(x, y)`` filled with ``dv``: the inverse-warp look-ups in the keyframe (the
-        formulas of :func:`egorefine.refine.close_cracks`). Returns ``(accepted, disparity, variance)``."""
+    def _key_cell(g00, g02, g10, g12, g20, g22, r0, r1, r2, e0, e1, e2, x_max, y_max, xf, dv):
+        """Hole pixel ``(xf, y)`` at disparity ``dv`` sent back into the keyframe (G's ``y`` terms in ``r*``):
+        ``(inside, h_z, ax, ay, h_z unclamped, column, row)`` of its bilinear look-up cell."""
+        base0 = (g00 * xf + r0) + g02
+        base1 = (g10 * xf + r1) + g12
+        base2 = (g20 * xf + r2) + g22
+        h2 = base2 + e2 * dv
+        hz = max(h2, _MIN)
+        sx = (base0 + e0 * dv) / hz
+        sy = (base1 + e1 * dv) / hz
+        inside = (h2 > _MIN) & (sx >= 0) & (sy >= 0) & (sx <= x_max) & (sy <= y_max)
+        x0 = min(np.floor(min(max(sx, _F(0.0)), x_max)), x_max - _F(1.0))
+        y0 = min(np.floor(min(max(sy, _F(0.0)), y_max)), y_max - _F(1.0))
+        ax = min(max(sx - x0, _F(0.0)), _F(1.0))
+        ay = min(max(sy - y0, _F(0.0)), _F(1.0))
+        return inside, hz, ax, ay, h2, np.int32(x0), np.int32(y0)
+
+    @_jit(error_model="numpy")
+    def _close_row(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y, drow,
+                   vrow, var_row, crow, scratch, flags, holes, at):
+        """close_cracks for row ``y`` of one batch item's prediction, in place: its hole pixels' inverse-warp
+        look-ups in the keyframe (the formulas of :func:`egorefine.refine.close_cracks`, same order). Returns the
+        number of holes.
+
+        The holes are first gathered into a list; then each step is a loop over it that only computes (SIMD code,
+        as in :mod:`egorefine.refine._splat_numba`: few arrays per loop, the look-up's geometry recomputed rather
+        than stored) and one that only gathers the four keyframe neighbours. Work arrays: ``scratch`` ``(11, W)``
+        float32, ``flags`` ``(2, W)`` bool, ``holes`` ``(W,)`` int32, ``at`` ``(W,)`` uint32.
+        """
         H, W = key_d.shape
-        xf, yf = _F(x), _F(y)
-        base0 = (G[0, 0] * xf + G[0, 1] * yf) + G[0, 2]
-        base1 = (G[1, 0] * xf + G[1, 1] * yf) + G[1, 2]
-        base2 = (G[2, 0] * xf + G[2, 1] * yf) + G[2, 2]
-        ok = True
-        step = _F(0.0)
-        var = _F(0.0)
-        hz = _F(1.0)
-        for _ in range(iterations):
-            h2 = base2 + e[2] * dv
-            hz = max(h2, _MIN)
-            sx = (base0 + e[0] * dv) / hz
-            sy = (base1 + e[1] * dv) / hz
-            inside = (h2 > _MIN) & (sx >= 0) & (sy >= 0) & (sx <= W - 1) & (sy <= H - 1)
-            x0 = min(np.floor(min(max(sx, _F(0.0)), _F(W - 1))), _F(W - 2))
-            y0_ = min(np.floor(min(max(sy, _F(0.0)), _F(H - 1))), _F(H - 2))
-            ax = min(max(sx - x0, _F(0.0)), _F(1.0))
-            ay = min(max(sy - y0_, _F(0.0)), _F(1.0))
-            i, j = np.int64(x0), np.int64(y0_)
-            c0, c1, c2, c3 = key_d[j, i], key_d[j, i + 1], key_d[j + 1, i], key_d[j + 1, i + 1]
-            spread = max(max(c0, c1), max(c2, c3)) - min(min(c0, c1), min(c2, c3))
-            sample_ok = (inside & key_ok[j, i] & key_ok[j, i + 1] & key_ok[j + 1, i] & key_ok[j + 1, i + 1]
-                         & (spread <= surface_tolerance))
-            w0, w1 = (_F(1.0) - ax) * (_F(1.0) - ay), ax * (_F(1.0) - ay)
-            w2, w3 = (_F(1.0) - ax) * ay, ax * ay
-            value = ((w0 * c0 + w1 * c1) + w2 * c2) + w3 * c3
-            var = (((w0 * key_var[j, i] + w1 * key_var[j, i + 1]) + w2 * key_var[j + 1, i])
-                   + w3 * key_var[j + 1, i + 1])
-            new = value * hz  # d' = d_k / q_z with q_z = 1 / h_z (eq. 1)
-            step = abs(new - dv)
-            ok = ok & sample_ok
-            if sample_ok:
-                dv = new
-        return ok and step <= tolerance, dv, var * (hz * hz) + process_noise
+        n = 0
+        for x in range(W):  # (branch-free: the index is written always, kept when the pixel is a hole)
+            holes[n] = x
+            n += not vrow[x]
+        if n == 0:
+            return 0
+        d_flat, var_flat, ok_flat = key_d.reshape(-1), key_var.reshape(-1), key_ok.reshape(-1)
+        uw = np.uint32(W)
+        yf = _F(y)
+        g00, g02, g10, g12, g20, g22 = G[0, 0], G[0, 2], G[1, 0], G[1, 2], G[2, 0], G[2, 2]
+        r0, r1, r2 = G[0, 1] * yf, G[1, 1] * yf, G[2, 1] * yf
+        e0, e1, e2 = e[0], e[1], e[2]
+        x_max, y_max = _F(W - 1), _F(H - 1)
+        dv_r, step_r, var_r, c0, c1, c2, c3, v0, v1, v2, v3 = (
+            scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5], scratch[6], scratch[7],
+            scratch[8], scratch[9], scratch[10])
+        ok_r, quad = flags[0], flags[1]  # ok_r: every look-up so far valid
+        for k in range(n):
+            dv_r[k] = drow[holes[k]]
+            ok_r[k] = True
+        for step in range(iterations):
+            # the look-up cell of the estimate sent back into the keyframe
+            for k in range(n):
+                _, _, _, _, _, i, j = _key_cell(g00, g02, g10, g12, g20, g22, r0, r1, r2, e0, e1, e2, x_max, y_max,
+                                               _F(holes[k]), dv_r[k])
+                at[k] = np.uint32(j * W + i)
+            for k in range(n):  # its four neighbours (gathers only)
+                c = at[k]
+                c0[k], c1[k], c2[k], c3[k] = d_flat[c], d_flat[c + 1], d_flat[c + uw], d_flat[c + uw + 1]
+                quad[k] = ok_flat[c] & ok_flat[c + 1] & ok_flat[c + uw] & ok_flat[c + uw + 1]
+            if step == iterations - 1:  # the variance of the last look-up, carried like the splat's
+                for k in range(n):
+                    c = at[k]
+                    v0[k], v1[k], v2[k], v3[k] = var_flat[c], var_flat[c + 1], var_flat[c + uw], var_flat[c + uw + 1]
+                for k in range(n):
+                    _, hz, ax, ay, _, _, _ = _key_cell(g00, g02, g10, g12, g20, g22, r0, r1, r2, e0, e1, e2, x_max,
+                                                       y_max, _F(holes[k]), dv_r[k])
+                    w0, w1 = (_F(1.0) - ax) * (_F(1.0) - ay), ax * (_F(1.0) - ay)
+                    w2, w3 = (_F(1.0) - ax) * ay, ax * ay
+                    var = ((w0 * v0[k] + w1 * v1[k]) + w2 * v2[k]) + w3 * v3[k]
+                    var_r[k] = var * (hz * hz) + process_noise
+            # the sample moved forward (eq. 1, d' = d_k h_z) where its four neighbours are valid and on one surface
+            for k in range(n):
+                dv = dv_r[k]
+                inside, hz, ax, ay, _, _, _ = _key_cell(g00, g02, g10, g12, g20, g22, r0, r1, r2, e0, e1, e2, x_max,
+                                                        y_max, _F(holes[k]), dv)
+                a0, a1, a2, a3 = c0[k], c1[k], c2[k], c3[k]
+                spread = max(max(a0, a1), max(a2, a3)) - min(min(a0, a1), min(a2, a3))
+                sample_ok = inside & quad[k] & (spread <= surface_tolerance)
+                w0, w1 = (_F(1.0) - ax) * (_F(1.0) - ay), ax * (_F(1.0) - ay)
+                w2, w3 = (_F(1.0) - ax) * ay, ax * ay
+                new = (((w0 * a0 + w1 * a1) + w2 * a2) + w3 * a3) * hz
+                step_r[k] = abs(new - dv)
+                ok_r[k] = ok_r[k] & sample_ok
+                dv_r[k] = new if sample_ok else dv
+        for k in range(n):  # accepted: the last step moved the estimate by at most the tolerance
+            if ok_r[k] and step_r[k] <= tolerance:
+                x = holes[k]
+                v = var_r[k]
+                drow[x] = dv_r[k]
+                var_row[x] = v
+                vrow[x] = True
+                crow[x] = _F(1.0) / (_F(1.0) + v)
+        return n
 
     @_jit
     def _close_cracks(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y0, y1,
@@ -77,25 +133,17 @@ if AVAILABLE:
         """close_cracks for rows ``y0:y1`` of one batch item: the prediction's maps (``*_in``) copied to the outputs,
         and the look-ups in the keyframe for its holes. Returns the number of holes."""
         W = key_d.shape[1]
-        holes = 0
+        scratch, flags = np.empty((11, W), np.float32), np.empty((2, W), np.bool_)
+        holes, at = np.empty(W, np.int32), np.empty(W, np.uint32)
+        n = 0
         for y in range(y0, y1):
-            for x in range(W):
-                disparity[y, x] = d_in[y, x]
-                variance[y, x] = var_in[y, x]
-                confidence[y, x] = conf_in[y, x]
-                valid[y, x] = valid_in[y, x]
-            for x in range(W):
-                if valid_in[y, x]:
-                    continue
-                holes += 1
-                ok, dv, v = _look_up(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance,
-                                     process_noise, x, y, disparity[y, x])
-                if ok:
-                    disparity[y, x] = dv
-                    variance[y, x] = v
-                    valid[y, x] = True
-                    confidence[y, x] = _F(1.0) / (_F(1.0) + v)
-        return holes
+            disparity[y, :] = d_in[y]
+            variance[y, :] = var_in[y]
+            confidence[y, :] = conf_in[y]
+            valid[y, :] = valid_in[y]
+            n += _close_row(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y,
+                            disparity[y], valid[y], variance[y], confidence[y], scratch, flags, holes, at)
+        return n
 
     @_jit
     def _finish(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, low, high,
@@ -103,19 +151,13 @@ if AVAILABLE:
         """Rows ``y0:y1`` of one batch item's prediction, in place: its holes' look-ups in the keyframe (when
         ``iterations`` > 0), then values outside ``[low, high)`` made not valid (confidence 0)."""
         W = key_d.shape[1]
+        scratch, flags = np.empty((11, W), np.float32), np.empty((2, W), np.bool_)
+        holes, at = np.empty(W, np.int32), np.empty(W, np.uint32)
         for y in range(y0, y1):
             drow, vrow, crow = disparity[y], valid[y], confidence[y]
             if iterations > 0:
-                for x in range(W):
-                    if vrow[x]:
-                        continue
-                    ok, dv, v = _look_up(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance,
-                                         process_noise, x, y, drow[x])
-                    if ok:
-                        drow[x] = dv
-                        variance[y, x] = v
-                        vrow[x] = True
-                        crow[x] = _F(1.0) / (_F(1.0) + v)
+                _close_row(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y,
+                           drow, vrow, variance[y], crow, scratch, flags, holes, at)
             for x in range(W):
                 keep = vrow[x] & (drow[x] >= low) & (drow[x] < high)
                 vrow[x] = keep
