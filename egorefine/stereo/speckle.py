@@ -41,55 +41,70 @@ if AVAILABLE:
     def _flood(disp, valid, max_size, max_diff, out):
         """``out[b, y, x]`` = valid and in a linked region of more than ``max_size`` pixels, per image ``b``.
 
-        Connected components by runs: along a row, linked pixels form runs (numbered in scan order); the links
-        between a row and the one above join runs in a union-find forest whose roots are each region's lowest
-        run (so a parent's number is below its child's); the region sizes then gather at the roots in one pass in
-        run order, and a last pass over the pixels reads their region's size. Per pixel this is a few sequential
-        reads and writes, no stack and no per-pixel bounds checks of four neighbours.
+        Connected components by runs: along a row, linked pixels form runs (numbered in scan order); where a run
+        overlaps one of the row above, the first linked pixel pair of the overlap joins the two in a union-find
+        forest whose roots are each region's lowest run (so a parent's number is below its child's). The region
+        sizes then gather at the roots in one pass in run order, and each run is written as a span of the mask.
+        Only the row scan visits every pixel; the overlaps stop at their first link.
         """
         B, H, W = disp.shape
-        run = np.empty((H, W), np.int32)  # the pixel's run (0: invalid)
+        start = np.empty(H * W + 1, np.int32)  # a run's first column
+        stop = np.empty(H * W + 1, np.int32)  # one past its last
         parent = np.empty(H * W + 1, np.int32)
         size = np.empty(H * W + 1, np.int32)
+        first = np.empty(H + 1, np.int64)  # the runs of row y: first[y] .. first[y + 1]
         for b in range(B):
             n = 0
-            parent[0] = 0
             for y in range(H):
-                d, v, lab = disp[b, y], valid[b, y], run[y]
-                for x in range(W):
-                    if v[x]:
-                        if x == 0 or not v[x - 1] or not abs(d[x] - d[x - 1]) <= max_diff:
-                            n += 1
-                            parent[n] = n
-                            size[n] = 0
-                        size[n] += 1
-                        lab[x] = n
-                    else:
-                        lab[x] = 0
+                first[y] = n
+                d, v = disp[b, y], valid[b, y]
+                x = 0
+                while x < W:
+                    if not v[x]:
+                        x += 1
+                        continue
+                    x0 = x
+                    x += 1
+                    while x < W and v[x] and abs(d[x] - d[x - 1]) <= max_diff:
+                        x += 1
+                    start[n], stop[n], parent[n], size[n] = x0, x, n, x - x0
+                    n += 1
                 if y > 0:
-                    up, dup = run[y - 1], disp[b, y - 1]
-                    last_a, last_c = 0, 0  # the pair of runs joined last: along a shared edge it repeats
-                    for x in range(W):
-                        a, c = lab[x], up[x]
-                        if a != 0 and c != 0 and (a != last_a or c != last_c) and abs(d[x] - dup[x]) <= max_diff:
-                            last_a, last_c = a, c
-                            ra, rc = _root(parent, a), _root(parent, c)
-                            if ra < rc:
-                                parent[rc] = ra
-                            elif rc < ra:
-                                parent[ra] = rc
+                    # the overlaps of this row's runs with the row above's, left to right
+                    up = disp[b, y - 1]
+                    i, k, i_end = first[y - 1], first[y], first[y]
+                    while i < i_end and k < n:
+                        lo, hi = max(start[i], start[k]), min(stop[i], stop[k])
+                        if lo < hi:
+                            ri, rk = _root(parent, i), _root(parent, k)
+                            if ri != rk:
+                                for x in range(lo, hi):
+                                    if abs(d[x] - up[x]) <= max_diff:
+                                        if ri < rk:
+                                            parent[rk] = ri
+                                        else:
+                                            parent[ri] = rk
+                                        break
+                        if stop[i] <= stop[k]:
+                            i += 1
+                        else:
+                            k += 1
+            first[H] = n
             # sizes at the roots: in run order every parent is settled (points at its root) before its children
-            for i in range(1, n + 1):
+            for i in range(n):
                 p = parent[i]
                 if p != i:
                     p = parent[p]
                     parent[i] = p
                     size[p] += size[i]
-            size[0] = 0
             for y in range(H):
-                lab, o = run[y], out[b, y]
+                o = out[b, y]
                 for x in range(W):
-                    o[x] = size[parent[lab[x]]] > max_size
+                    o[x] = False
+                for i in range(first[y], first[y + 1]):
+                    keep = size[parent[i]] > max_size
+                    for x in range(start[i], stop[i]):
+                        o[x] = keep
 
 
     @_jit
