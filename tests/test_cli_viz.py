@@ -32,11 +32,15 @@ def test_folder_command_writes_one_accurate_map_per_frame(seq, tmp_path):
     assert main(argv) == 0
     maps = sorted((tmp_path / "out").glob("*.pfm"))
     assert len(maps) == 3
-    last = read_pfm(maps[-1])[None]  # (1, 1, H, W); +inf where the refiner has no value
-    gt = seq.disparity[2:3]
-    ok = torch.isfinite(last) & ~seq.occluded[2:3]
-    assert ok.float().mean() > 0.8
-    assert (last - gt).abs()[ok].median() < 0.2
+    # Every map (stereo, predicted, verified) against truth, at bounds about 1.3 times what the loop achieves on
+    # these frames (density: a few points below): a wrong focal, baseline or frame order breaks them, and so does a
+    # loop whose motion or sub-pixel stereo is lost.
+    for t, path in enumerate(maps):
+        d = read_pfm(path)[None]  # (1, 1, H, W); +inf where the refiner has no value
+        ok = torch.isfinite(d) & ~seq.occluded[t : t + 1]
+        error = (d - seq.disparity[t : t + 1]).abs()[ok]
+        assert ok.float().mean() > 0.92, t
+        assert error.mean() < 0.12 and error.median() < 0.07, (t, float(error.mean()), float(error.median()))
 
 
 def test_row_figure_and_colours(seq, tmp_path):

@@ -123,9 +123,11 @@ def test_kalman_mode_fills_the_box_matchers_holes_from_sgm():
 
 
 def test_the_filled_loop_is_denser_than_its_box_matcher_and_stays_accurate():
-    """On realistic imaging the filled Kalman loop marks more pixels valid than the box-only one, with an error
-    still well below a pixel. Measured here (seed 3): 0.259 px at 0.981 density against 0.201 at 0.697; seed 5
-    gives 0.282 at 0.972 against 0.244 at 0.594."""
+    """On realistic imaging the filled Kalman loop marks far more pixels valid than the box-only one, at an error
+    little above the box-only loop's. Bounds from what the two loops achieve on this seed: EPE at about 1.2 times
+    each loop's, the filled loop's density a few points below its own and at least 20 points above the box-only
+    loop's, its EPE at most 1.5 times the box-only loop's (about 1.15 times their measured ratio), and on every frame
+    a median signed error (a bias of the whole map) within 0.05 px, half the smallest shift tools/mutants.py plants."""
     seq = render_sequence(num_frames=6, height=120, width=160, seed=3)
     K, b = seq.K[None], torch.tensor([seq.baseline])
     scores = {}
@@ -136,12 +138,14 @@ def test_the_filled_loop_is_denser_than_its_box_matcher_and_stays_accurate():
             out, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
             scored = ~seq.occluded[t : t + 1] & (seq.disparity[t : t + 1] > 0)
             m = out.valid & scored
-            err += float((out.disparity - seq.disparity[t : t + 1]).abs()[m].sum())
+            error = (out.disparity - seq.disparity[t : t + 1])[m]
+            assert error.median().abs() < 0.05, (fill, t, float(error.median()))
+            err += float(error.abs().sum())
             n, known = n + int(m.sum()), known + int(scored.sum())
         scores[fill] = (err / n, n / known)
     (epe, density), (box_epe, box_density) = scores[True], scores[False]
-    assert density > box_density + 0.2, scores
-    assert epe < 0.5 and epe < 3 * box_epe, scores
+    assert density > 0.95 and density > box_density + 0.2, scores
+    assert epe < 0.31 and box_epe < 0.24 and epe < 1.5 * box_epe, scores
 
 
 def test_the_box_matchers_own_count_is_carried_only_with_a_fill():

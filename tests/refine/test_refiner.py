@@ -482,17 +482,27 @@ def test_expected_positions_move_features_with_the_motion(small_seq, compiled, m
 
 
 def test_loop_on_realistic_imaging():
-    """Sensor noise, camera differences, weak texture and thin structures (the renderer's default imaging)."""
+    """Sensor noise, camera differences, weak texture and thin structures (the renderer's default imaging).
+
+    Bounds from what the Kalman loop achieves on this seed, with margins that another CPU or thread count cannot
+    use up but a broken step does: motion errors at 1.5 times the largest measured, EPE at about 1.2 times (mean
+    over the frames) and 1.25 times (any frame), density a few points below the lowest frame, and the median signed
+    error (a bias of the whole map) within 0.05 px, about twice the largest measured and half the smallest shift
+    that must fail (tools/mutants.py plants one of 0.1 px)."""
     seq = render_sequence(num_frames=7, height=120, width=160, seed=3)
     outs, _ = _run(seq, EgoMotionRefiner(verify_every=5, fusion="kalman", **SMALL))
     motion = torch.cat([o.motion for o in outs[1:]])
     gt = seq.motions[1:]
-    # Bounds set from renders with other seeds (docs/rendering.md).
-    assert (translation_error(motion, gt) < 0.09 * gt[:, :3, 3].norm(dim=-1)).all()
-    assert (rotation_error_deg(motion, gt) < 0.15).all()
+    assert (translation_error(motion, gt) < 0.08 * gt[:, :3, 3].norm(dim=-1)).all()
+    assert (rotation_error_deg(motion, gt) < 0.11).all()
     x = torch.arange(seq.left.shape[-1]).view(1, 1, -1)
+    epe = []
     for t, o in enumerate(outs):
         scored = ~seq.occluded[t] & (x >= seq.disparity[t])
         valid = o.valid[0] & scored
-        assert valid.sum() / scored.sum() > 0.48, t
-        assert (o.disparity[0] - seq.disparity[t]).abs()[valid].mean() < 0.5, t
+        error = (o.disparity[0] - seq.disparity[t])[valid]
+        epe.append(float(error.abs().mean()))
+        assert valid.sum() / scored.sum() > 0.94, t
+        assert epe[-1] < 0.35, (t, epe[-1])
+        assert error.median().abs() < 0.05, (t, float(error.median()))
+    assert sum(epe) / len(epe) < 0.3, epe

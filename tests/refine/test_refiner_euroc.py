@@ -35,35 +35,46 @@ def _first_map_moved(d, v, m, seq):
     return w.disparity, w.valid & v & (w.disparity > 1.0)
 
 
+# (fusion, stable share above, largest tile drift below, largest per-pixel drift below or None): from what each
+# fusion achieves on the clip, density a few points below it, drift about 1.2-1.3 times it (paper mode's tile drift
+# is a few thousandths of a pixel: 0.01 px, a floor that float rounding on another machine cannot reach)
+DRIFT = {"paper": (0.6, 0.01, 0.04), "kalman": (0.78, 0.045, None)}
+
+
 @pytest.mark.parametrize("fusion", ["paper", "kalman"])
 def test_static_camera_does_not_drift(euroc_root, fusion):
     """Drift against the first map moved by the estimated motion, per 32 px tile (the shift a region shares; d_0's
-    per-pixel noise averages away) under 0.05 px on every frame, both fusions; per pixel too in paper mode, whose
-    map stays near d_0 (Kalman's converges to the mean of the measurements, which differs from d_0 per pixel by
-    d_0's own noise: benchmarks/euroc_static.py)."""
+    per-pixel noise averages away) on every frame, both fusions; per pixel too in paper mode, whose map stays near
+    d_0 (Kalman's converges to the mean of the measurements, which differs from d_0 per pixel by d_0's own noise:
+    benchmarks/euroc_static.py). Bounds in ``DRIFT``; the motion's at about 1.5 times what the solve achieves."""
+    min_stable, max_tile, max_pixel = DRIFT[fusion]
     seq = load_euroc(euroc_root)
     assert len(seq.left) == 40
     d, v, m = _run(seq, fusion=fusion)
     # Stable pixels: valid on every frame, with a real disparity (> 1 px) on the first.
     stable = v.all(0) & (d[0] > 1.0)
-    assert stable.float().mean() > (0.5 if fusion == "paper" else 0.4)
+    assert stable.float().mean() > min_stable
     ref, ok = _first_map_moved(d, v, m, seq)
-    assert ok[-1].float().mean() > 0.3
+    assert ok[-1].float().mean() > min_stable
     tile = torch.stack([tile_shift(d[t : t + 1], ref[t : t + 1], ok[t : t + 1]) for t in range(len(d))])
-    assert tile.max() < 0.05, f"{fusion}: a tile's median drift reached {tile.max():.3f} px"
-    if fusion == "paper":
+    assert tile.max() < max_tile, f"{fusion}: a tile's median drift reached {tile.max():.4f} px"
+    if max_pixel is not None:
         pixel = torch.stack([(d[t] - ref[t]).abs()[ok[t]].median() for t in range(len(d))])
-        assert pixel.max() < 0.05, f"median |d_t - W_t(d_0)| reached {pixel.max():.3f} px"
-    # The ground truth moves < 0.6 mm and a few hundredths of a degree per frame; the estimate must agree.
+        assert pixel.max() < max_pixel, f"median |d_t - W_t(d_0)| reached {pixel.max():.4f} px"
+    # The ground truth moves < 0.6 mm and a few hundredths of a degree per frame; the estimate must agree (an
+    # estimate frozen at the identity misses the rotation by several times the bound).
     gt = torch.linalg.inv(seq.poses[1:]) @ seq.poses[:-1]
-    assert translation_error(m[1:], gt).max() < 2e-3
-    assert rotation_error_deg(m[1:], gt).max() < 0.1
-    assert m[1:, :3, 3].norm(dim=-1).max() < 2e-3
+    assert translation_error(m[1:], gt).max() < 7e-4
+    assert rotation_error_deg(m[1:], gt).max() < 0.035
+    assert m[1:, :3, 3].norm(dim=-1).max() < 6e-4
 
 
 def test_kalman_mode_converges_on_a_still_camera(euroc_root):
     """Kalman fusion averages the keyframes' measurements: against the per-pixel mean of per-frame stereo (the best
-    reference a still scene gives) its error must not grow after frame 0 and must end well below the first map's."""
+    reference a still scene gives) its error must not grow after frame 0 and must end well below the first map's,
+    and the map must not be shifted from that mean (the loop adds no bias of its own). Bounds from what the loop
+    achieves on the clip: the last error at 0.6 times the first (about 1.2 times the measured ratio), the median
+    signed difference within 0.04 px (about 1.3 times the largest measured), the share a few points below."""
     from egorefine.stereo import match_stereo
 
     seq = load_euroc(euroc_root)
@@ -79,7 +90,9 @@ def test_kalman_mode_converges_on_a_still_camera(euroc_root):
         valid.append(out.valid)
     d, v = torch.cat(disparity), torch.cat(valid)
     ok = v.all(0) & (d[0] > 1.0) & (sv.float().mean(0) >= 0.5)
-    assert ok.float().mean() > 0.3
+    assert ok.float().mean() > 0.65
     error = torch.stack([(d[t] - reference).abs()[ok].median() for t in range(len(d))])
     assert (error - error[0]).max() < 0.01, f"error against the mean map grew by {(error - error[0]).max():.3f} px"
-    assert error[-1] < 0.7 * error[0], f"{error[0]:.3f} -> {error[-1]:.3f} px"
+    assert error[-1] < 0.6 * error[0], f"{error[0]:.3f} -> {error[-1]:.3f} px"
+    bias = torch.stack([(d[t] - reference)[ok].median() for t in range(len(d))])
+    assert bias.abs().max() < 0.04, f"median d_t - mean map reached {bias.abs().max():.3f} px"

@@ -208,16 +208,19 @@ def test_strips_do_not_change_the_result(pair, monkeypatch):
 
 
 # ---------------------------------------------------------------- accuracy against known truth
-@pytest.mark.parametrize("kw", [{}, {"cost": "zncc"}, {"cost": "census", "block_size": 7},
-                                {"aggregation": "sgm", "cost": "census", "block_size": 5}])
-def test_subpixel_accuracy_on_textured_plane(kw):
+# (matcher options, EPE below): about 1.3 times what each cost achieves on this plane. Integer disparities on a
+# slanted plane are off by a quarter pixel on average, so a matcher without its sub-pixel fit fails every case.
+@pytest.mark.parametrize(("kw", "max_epe"), [({}, 0.08), ({"cost": "zncc"}, 0.085),
+                                             ({"cost": "census", "block_size": 7}, 0.04),
+                                             ({"aggregation": "sgm", "cost": "census", "block_size": 5}, 0.055)])
+def test_subpixel_accuracy_on_textured_plane(kw, max_epe):
     left, right, gt = planar_pair(batch=1, height=80, width=112, seed=1, base=5.5, slope_x=0.03, slope_y=-0.01)
     out = match_stereo(left, right, 24, **kw)
     scored = visible(gt, 5)
     valid = out.valid & scored
     density = valid.sum() / scored.sum()
     assert density > 0.9
-    assert epe(out.disparity, gt, valid) < 0.25
+    assert epe(out.disparity, gt, valid) < max_epe
     assert bad_pixel_rate(out.disparity, gt, 1.0, valid) < 0.01
 
 
