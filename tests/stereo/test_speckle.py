@@ -57,6 +57,29 @@ def test_slope_within_range_is_one_region():
         assert not out.any()
 
 
+def test_region_joined_only_far_below_is_one_region():
+    # two 2-px-wide arms (8 rows each: 16 px) on a background they do not link to, joined by a bar in their last
+    # row only, and a staircase whose rows link through one shared column each: the arms
+    # alone are small, the U is not; the staircase is one region of 10 px
+    disp = torch.full((1, 1, 12, 16), 50.0)
+    valid = torch.zeros(1, 1, 12, 16, dtype=torch.bool)
+    disp[..., 0:8, 1:3] = 5.0
+    disp[..., 0:8, 7:9] = 5.4
+    disp[..., 7, 3:7] = 5.2
+    valid[..., 0:8, 1:3] = valid[..., 0:8, 7:9] = valid[..., 7, 3:7] = True
+    for y in range(5):  # a staircase: row 4 + y covers columns 10 + y and 11 + y
+        disp[..., 4 + y, 10:16] = 9.0
+        valid[..., 4 + y, 10 + y : 12 + y] = True
+    for out in _both(disp, valid, 30, 1.0):
+        assert out[..., 0:8, 1:3].all() and out[..., 7, 3:7].all()  # the U: 36 px
+        assert not out[..., :, 10:].any()  # the staircase: 10 px
+    for out in _both(disp, valid, 9, 1.0):
+        assert int(out[..., :, 10:].sum()) == 10
+    disp[..., 7, 3:7] = 7.0  # the bar no longer links to the arms: every piece is small
+    for out in _both(disp, valid, 30, 1.0):
+        assert not out[..., :, :9].any()
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize(("max_size", "max_diff"), [(1, 0.5), (9, 1.0), (30, 2.0)])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
