@@ -58,8 +58,10 @@ if AVAILABLE:
 
         The holes are first gathered into a list; then each step is a loop over it that only computes (SIMD code,
         as in :mod:`egorefine.refine._splat_numba`: few arrays per loop, the look-up's geometry recomputed rather
-        than stored) and one that only gathers the four keyframe neighbours. Work arrays: ``scratch`` ``(11, W)``
-        float32, ``flags`` ``(2, W)`` bool, ``holes`` ``(W,)`` int32, ``at`` ``(W,)`` uint32.
+        than stored) and one that only gathers the four keyframe neighbours. A hole whose look-up failed cannot be
+        accepted any more and leaves the list (most holes are never accepted: disocclusions, the keyframe's holes).
+        Work arrays: ``scratch`` ``(11, W)`` float32, ``flags`` ``(2, W)`` bool, ``holes`` ``(W,)`` int32, ``at``
+        ``(W,)`` uint32.
         """
         H, W = key_d.shape
         n = 0
@@ -68,6 +70,7 @@ if AVAILABLE:
             n += not vrow[x]
         if n == 0:
             return 0
+        count = n
         d_flat, var_flat, ok_flat = key_d.reshape(-1), key_var.reshape(-1), key_ok.reshape(-1)
         uw = np.uint32(W)
         yf = _F(y)
@@ -117,6 +120,14 @@ if AVAILABLE:
                 step_r[k] = abs(new - dv)
                 ok_r[k] = ok_r[k] & sample_ok
                 dv_r[k] = new if sample_ok else dv
+            if step < iterations - 1:  # a hole whose look-up failed stays one: the next steps skip it
+                m = 0
+                for k in range(n):
+                    holes[m], dv_r[m] = holes[k], dv_r[k]
+                    m += ok_r[k]
+                n = m
+                for k in range(n):
+                    ok_r[k] = True
         for k in range(n):  # accepted: the last step moved the estimate by at most the tolerance
             if ok_r[k] and step_r[k] <= tolerance:
                 x = holes[k]
@@ -125,7 +136,7 @@ if AVAILABLE:
                 var_row[x] = v
                 vrow[x] = True
                 crow[x] = _F(1.0) / (_F(1.0) + v)
-        return n
+        return count
 
     @_jit
     def _close_cracks(key_d, key_var, key_ok, G, e, iterations, tolerance, surface_tolerance, process_noise, y0, y1,
