@@ -9,7 +9,7 @@ Two paths with the same output. The torch reference (any device) propagates the 
 along the links for ``max_size - 1`` steps: a region of at most ``max_size`` pixels spans no more steps,
 so its label is then final; a region whose labels still differ across a link is larger and kept. The
 CPU path (numba, float32 and float64) labels runs of linked pixels along the rows and joins them across rows in
-a union-find forest, one pass over the map and a second to write the mask.
+a union-find forest (bands of rows in parallel, then the seams between bands), and writes the mask by runs.
 """
 
 from __future__ import annotations
@@ -20,8 +20,10 @@ import torch.nn.functional as F
 
 from ..core import DTypeError, ValueRangeError, check_shape, use_compiled
 from ..core._jit import AVAILABLE
+from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from ..core.dispatch import _is_compiling
+from ._sad_numba import _run
 
 __all__ = ["remove_speckles"]
 
@@ -37,74 +39,86 @@ if AVAILABLE:
             i = parent[i]
         return i
 
-    @_jit
-    def _flood(disp, valid, max_size, max_diff, out):
-        """``out[b, y, x]`` = valid and in a linked region of more than ``max_size`` pixels, per image ``b``.
+    @_jit(inline="always")
+    def _join(parent, a, b):
+        """Join the trees of runs ``a`` and ``b``: the higher root points at the lower (a parent's number stays below
+        its child's)."""
+        ra, rb = _root(parent, a), _root(parent, b)
+        if ra < rb:
+            parent[rb] = ra
+        elif rb < ra:
+            parent[ra] = rb
 
-        Connected components by runs: along a row, linked pixels form runs (numbered in scan order); where a run
-        overlaps one of the row above, the first linked pixel pair of the overlap joins the two in a union-find
-        forest whose roots are each region's lowest run (so a parent's number is below its child's). The region
-        sizes then gather at the roots in one pass in run order, and each run is written as a span of the mask.
-        Only the row scan visits every pixel; the overlaps stop at their first link.
+    @_jit(inline="always")
+    def _join_rows(d, up, y, W, max_diff, start, stop, parent, count):
+        """Join the runs of row ``y`` with those of row ``y - 1`` they overlap: each overlap of two runs not yet in one
+        tree is read up to its first linked pixel pair (``d``, ``up``: the two rows' disparities)."""
+        i, i_end = (y - 1) * W, (y - 1) * W + count[y - 1]
+        k, k_end = y * W, y * W + count[y]
+        while i < i_end and k < k_end:
+            lo, hi = max(start[i], start[k]), min(stop[i], stop[k])
+            if lo < hi and _root(parent, i) != _root(parent, k):
+                for x in range(lo, hi):
+                    if abs(d[x] - up[x]) <= max_diff:
+                        _join(parent, i, k)
+                        break
+            if stop[i] <= stop[k]:
+                i += 1
+            else:
+                k += 1
+
+    @_jit
+    def _label_rows(disp, valid, y0, y1, max_diff, start, stop, parent, size, count):
+        """The runs of rows ``[y0, y1)`` of one map ``(H, W)`` and their joins within those rows.
+
+        Along a row, linked pixels form runs; row ``y``'s runs are numbered ``y * W ...`` (``count[y]`` of them, each
+        ``[start, stop)`` with ``size`` pixels). Bands of rows label in parallel: each touches its rows' runs only.
         """
-        B, H, W = disp.shape
-        start = np.empty(H * W + 1, np.int32)  # a run's first column
-        stop = np.empty(H * W + 1, np.int32)  # one past its last
-        parent = np.empty(H * W + 1, np.int32)
-        size = np.empty(H * W + 1, np.int32)
-        first = np.empty(H + 1, np.int64)  # the runs of row y: first[y] .. first[y + 1]
-        for b in range(B):
-            n = 0
-            for y in range(H):
-                first[y] = n
-                d, v = disp[b, y], valid[b, y]
-                x = 0
-                while x < W:
-                    if not v[x]:
-                        x += 1
-                        continue
-                    x0 = x
+        W = disp.shape[1]
+        for y in range(y0, y1):
+            d, v = disp[y], valid[y]
+            n = y * W
+            x = 0
+            while x < W:
+                if not v[x]:
                     x += 1
-                    while x < W and v[x] and abs(d[x] - d[x - 1]) <= max_diff:
-                        x += 1
-                    start[n], stop[n], parent[n], size[n] = x0, x, n, x - x0
-                    n += 1
-                if y > 0:
-                    # the overlaps of this row's runs with the row above's, left to right
-                    up = disp[b, y - 1]
-                    i, k, i_end = first[y - 1], first[y], first[y]
-                    while i < i_end and k < n:
-                        lo, hi = max(start[i], start[k]), min(stop[i], stop[k])
-                        if lo < hi:
-                            ri, rk = _root(parent, i), _root(parent, k)
-                            if ri != rk:
-                                for x in range(lo, hi):
-                                    if abs(d[x] - up[x]) <= max_diff:
-                                        if ri < rk:
-                                            parent[rk] = ri
-                                        else:
-                                            parent[ri] = rk
-                                        break
-                        if stop[i] <= stop[k]:
-                            i += 1
-                        else:
-                            k += 1
-            first[H] = n
-            # sizes at the roots: in run order every parent is settled (points at its root) before its children
-            for i in range(n):
+                    continue
+                x0 = x
+                x += 1
+                while x < W and v[x] and abs(d[x] - d[x - 1]) <= max_diff:
+                    x += 1
+                start[n], stop[n], parent[n], size[n] = x0, x, n, x - x0
+                n += 1
+            count[y] = n - y * W
+            if y > y0:
+                _join_rows(d, disp[y - 1], y, W, max_diff, start, stop, parent, count)
+
+    @_jit
+    def _region_mask(disp, seams, max_size, max_diff, start, stop, parent, size, count, out):
+        """``out`` ``(H, W)``: the pixels of runs in regions of more than ``max_size`` pixels, after joining the runs
+        across the rows ``seams`` (each band's first row) with the row above.
+
+        The region sizes gather at the roots in one pass in run order (every parent, numbered below its child, is
+        settled first), and each run is written as a span of the mask.
+        """
+        H, W = disp.shape
+        for y in seams:
+            _join_rows(disp[y], disp[y - 1], y, W, max_diff, start, stop, parent, count)
+        for y in range(H):
+            for i in range(y * W, y * W + count[y]):
                 p = parent[i]
                 if p != i:
                     p = parent[p]
                     parent[i] = p
                     size[p] += size[i]
-            for y in range(H):
-                o = out[b, y]
-                for x in range(W):
-                    o[x] = False
-                for i in range(first[y], first[y + 1]):
-                    keep = size[parent[i]] > max_size
-                    for x in range(start[i], stop[i]):
-                        o[x] = keep
+        for y in range(H):
+            o = out[y]
+            for x in range(W):
+                o[x] = False
+            for i in range(y * W, y * W + count[y]):
+                keep = size[parent[i]] > max_size
+                for x in range(start[i], stop[i]):
+                    o[x] = keep
 
 
     @_jit
@@ -137,6 +151,26 @@ def clear_invalid_(valid: torch.Tensor, disparity: torch.Tensor, variance: torch
     else:
         disparity.masked_fill_(~valid, 0.0)
         variance.masked_fill_(~valid, fill)
+
+def _remove_speckles_compiled(disp: torch.Tensor, valid: torch.Tensor, max_size: int, max_diff: float,
+                              threads: int | None = None) -> np.ndarray:
+    """The CPU path of :func:`remove_speckles`: ``(B, H, W)`` bool. Bands of rows label their runs on
+    ``threads`` threads (None: ``torch.get_num_threads()``), then each map's seams are joined and its mask written."""
+    d = np.ascontiguousarray(disp[:, 0].numpy())
+    v = np.ascontiguousarray(valid[:, 0].numpy())
+    b, h, w = d.shape
+    diff = np.array(max_diff, dtype=d.dtype)[()]
+    threads = max(1, threads or torch.get_num_threads())
+    runs = [tuple(np.empty(h * w, np.int32) for _ in range(4)) + (np.empty(h, np.int64),) for _ in range(b)]
+    bands = _bands(h, threads)
+    _run(threads, lambda job: _label_rows(d[job[0]], v[job[0]], *job[1], diff, *runs[job[0]]),
+         [(i, band) for i in range(b) for band in bands])
+    out = np.empty((b, h, w), np.bool_)
+    seams = np.array([y0 for y0, _ in bands[1:]], np.int64)
+    for i in range(b):
+        _region_mask(d[i], seams, max_size, diff, *runs[i], out[i])
+    return out
+
 
 def _links(disp: torch.Tensor, valid: torch.Tensor, max_diff: float, dim: int) -> torch.Tensor:
     """Links between neighbours along ``dim`` (-1: x, -2: y): both valid, disparities within ``max_diff``."""
@@ -245,8 +279,5 @@ def remove_speckles(disparity: torch.Tensor, valid: torch.Tensor, max_size: int 
         return valid
     disp = disparity.detach()  # the filter reads values only: a gradient elsewhere does not matter
     if use_compiled(disp, valid, dtype=(torch.float32, torch.float64)):
-        out = np.zeros(valid.shape[:1] + valid.shape[2:], np.bool_)
-        _flood(np.ascontiguousarray(disp[:, 0].numpy()), np.ascontiguousarray(valid[:, 0].numpy()), max_size,
-               np.array(max_diff, dtype=disp.numpy().dtype)[()], out)
-        return torch.from_numpy(out)[:, None]
+        return torch.from_numpy(_remove_speckles_compiled(disp, valid, max_size, max_diff))[:, None]
     return _remove_speckles_torch(disp, valid, max_size, max_diff)

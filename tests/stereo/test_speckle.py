@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+import egorefine.stereo.speckle as speckle
 from egorefine.core import DTypeError, ShapeError, ValueRangeError, dispatch
 from egorefine.stereo import INVALID_VARIANCE, match_stereo, remove_speckles
 
@@ -89,6 +90,18 @@ def test_compiled_equals_torch_reference(seed, max_size, max_diff, dtype):
     compiled, reference = _both(disp, valid, max_size, max_diff)
     assert torch.equal(compiled, reference)
     assert not (compiled & ~valid).any()
+
+
+@pytest.mark.skipif(not speckle.AVAILABLE, reason="numba not installed")
+@pytest.mark.parametrize("threads", [2, 3, 7])
+def test_compiled_bands_give_the_mask_of_one_band(threads):
+    # bands of rows label in parallel and are joined at their seams: regions crossing seams (the tall stripes of
+    # _random_map's patches) must come out as from one band, and as the torch reference
+    disp, valid = _random_map(6, b=2, h=41, w=29)
+    whole = speckle._remove_speckles_compiled(disp, valid, 30, 1.0, threads=1)
+    reference = _both(disp, valid, 30, 1.0)[1]
+    assert np.array_equal(whole, reference[:, 0].numpy())
+    assert np.array_equal(speckle._remove_speckles_compiled(disp, valid, 30, 1.0, threads=threads), whole)
 
 
 def test_matches_opencv_filter_speckles():
