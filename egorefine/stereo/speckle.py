@@ -50,11 +50,11 @@ if AVAILABLE:
             parent[ra] = rb
 
     @_jit(inline="always")
-    def _join_rows(d, up, y, W, max_diff, start, stop, parent, count):
+    def _join_rows(d, up, y, max_diff, start, stop, parent, first, end):
         """Join the runs of row ``y`` with those of row ``y - 1`` they overlap: each overlap of two runs not yet in one
         tree is read up to its first linked pixel pair (``d``, ``up``: the two rows' disparities)."""
-        i, i_end = (y - 1) * W, (y - 1) * W + count[y - 1]
-        k, k_end = y * W, y * W + count[y]
+        i, i_end = first[y - 1], end[y - 1]
+        k, k_end = first[y], end[y]
         while i < i_end and k < k_end:
             lo, hi = max(start[i], start[k]), min(stop[i], stop[k])
             if lo < hi and _root(parent, i) != _root(parent, k):
@@ -68,16 +68,18 @@ if AVAILABLE:
                 k += 1
 
     @_jit
-    def _label_rows(disp, valid, y0, y1, max_diff, start, stop, parent, size, count):
+    def _label_rows(disp, valid, y0, y1, max_diff, start, stop, parent, size, first, end):
         """The runs of rows ``[y0, y1)`` of one map ``(H, W)`` and their joins within those rows.
 
-        Along a row, linked pixels form runs; row ``y``'s runs are numbered ``y * W ...`` (``count[y]`` of them, each
-        ``[start, stop)`` with ``size`` pixels). Bands of rows label in parallel: each touches its rows' runs only.
+        Along a row, linked pixels form runs, each ``[start, stop)`` with ``size`` pixels; row ``y``'s are numbered
+        ``first[y] .. end[y]``, in scan order from ``y0 * W`` (a row has at most ``W``). Bands of rows label in
+        parallel: each touches its rows' runs only.
         """
         W = disp.shape[1]
+        n = y0 * W
         for y in range(y0, y1):
             d, v = disp[y], valid[y]
-            n = y * W
+            first[y] = n
             x = 0
             while x < W:
                 if not v[x]:
@@ -89,12 +91,12 @@ if AVAILABLE:
                     x += 1
                 start[n], stop[n], parent[n], size[n] = x0, x, n, x - x0
                 n += 1
-            count[y] = n - y * W
+            end[y] = n
             if y > y0:
-                _join_rows(d, disp[y - 1], y, W, max_diff, start, stop, parent, count)
+                _join_rows(d, disp[y - 1], y, max_diff, start, stop, parent, first, end)
 
     @_jit
-    def _region_mask(disp, seams, max_size, max_diff, start, stop, parent, size, count, out):
+    def _region_mask(disp, seams, max_size, max_diff, start, stop, parent, size, first, end, out):
         """``out`` ``(H, W)``: the pixels of runs in regions of more than ``max_size`` pixels, after joining the runs
         across the rows ``seams`` (each band's first row) with the row above.
 
@@ -103,9 +105,9 @@ if AVAILABLE:
         """
         H, W = disp.shape
         for y in seams:
-            _join_rows(disp[y], disp[y - 1], y, W, max_diff, start, stop, parent, count)
+            _join_rows(disp[y], disp[y - 1], y, max_diff, start, stop, parent, first, end)
         for y in range(H):
-            for i in range(y * W, y * W + count[y]):
+            for i in range(first[y], end[y]):
                 p = parent[i]
                 if p != i:
                     p = parent[p]
@@ -115,7 +117,7 @@ if AVAILABLE:
             o = out[y]
             for x in range(W):
                 o[x] = False
-            for i in range(y * W, y * W + count[y]):
+            for i in range(first[y], end[y]):
                 keep = size[parent[i]] > max_size
                 for x in range(start[i], stop[i]):
                     o[x] = keep
@@ -161,7 +163,8 @@ def _remove_speckles_compiled(disp: torch.Tensor, valid: torch.Tensor, max_size:
     b, h, w = d.shape
     diff = np.array(max_diff, dtype=d.dtype)[()]
     threads = max(1, threads or torch.get_num_threads())
-    runs = [tuple(np.empty(h * w, np.int32) for _ in range(4)) + (np.empty(h, np.int64),) for _ in range(b)]
+    runs = [tuple(np.empty(h * w, np.int32) for _ in range(4)) + (np.empty(h, np.int64), np.empty(h, np.int64))
+            for _ in range(b)]
     bands = _bands(h, threads)
     _run(threads, lambda job: _label_rows(d[job[0]], v[job[0]], *job[1], diff, *runs[job[0]]),
          [(i, band) for i in range(b) for band in bands])
