@@ -127,9 +127,8 @@ if AVAILABLE:
         for y in range(H):
             at_row, key_row = at[y], keys[y + _PAD, _PAD:_PAD + W]
             for x in range(W):
-                key, cell = key_row[x], at_row[x]
-                if key > flat[cell]:
-                    flat[cell] = key
+                cell = at_row[x]
+                flat[cell] = max(key_row[x], flat[cell])  # (stored always: no branch to mispredict)
         if has_var:
             for y in range(_PAD):
                 var_p[y, :] = var_p[_PAD, :]
