@@ -145,6 +145,11 @@ if AVAILABLE:
         # column of _INVALID either side (columns -1 and w): the winner's neighbours are then plain reads
         costp = np.full((num + 2, w + 2), big, np.int16)
         cost = costp[1: num + 1]
+        costf = costp.reshape(-1)
+        stride = w + 2
+        U = np.uint64
+        last = np.int16(num - 1)
+        no_end_check, no_lr, no_uniq = not min_d_pos, guard < 0, not uniq
         best = np.empty(w, np.int16)
         jbest = np.empty(w, np.int16)
         second = np.empty(w, np.int16)
@@ -155,6 +160,7 @@ if AVAILABLE:
         near_r = np.empty(w, np.int16)
         rmin_p = np.empty(w + max_d, np.int16)  # the right view's minimum at xr, stored at xr + max_d
         rmin = rmin_p[max_d:]
+        rm_at = np.empty(w, np.int16)
         tsum = np.empty(w, np.int16)
         unit, floor_area, eps, ratio = flt[0], flt[1], flt[2], flt[3]
         zero, half, two, quarter = np.float32(0.0), np.float32(0.5), np.float32(2.0), np.float32(0.25)
@@ -217,12 +223,14 @@ if AVAILABLE:
                             rm[x] = min(rm[x], cd[x])
             # the winner's neighbours in candidate (sub-pixel fit) and on the diagonal through its right-view pixel
             # (left-right tolerance 1): reversed order, so j - 1 is d + 1
+            # (flat, unsigned indices: no wrap-around code for negative indices)
             for x in range(w):
-                jb = np.int64(jbest[x])
-                cps[x] = costp[jb, x + 1]
-                cms[x] = costp[jb + 2, x + 1]
-                near_l[x] = costp[jb + 2, x]
-                near_r[x] = costp[jb, x + 2]
+                at = U(np.int64(jbest[x]) * stride + x)  # costp[jbest, x]
+                cps[x] = costf[at + U(1)]
+                cms[x] = costf[at + U(2 * stride + 1)]
+                near_l[x] = costf[at + U(2 * stride)]
+                near_r[x] = costf[at + U(2)]
+                rm_at[x] = rmin_p[U(x + 1) + U(jbest[x])]  # the right view's minimum at x - d
             if guard > 1:
                 # a wider tolerance: the lowest cost on the winner's right-view pixel within guard candidates
                 for x in range(w):
@@ -244,19 +252,16 @@ if AVAILABLE:
                     tcol[u] += _absdiff(ln[u], c_level) - _absdiff(lo[u], c_level)
             _window_sums(tcol, pairs, r, tsum)
             vrow = valid[y]
+            # the checks, branch-free (SIMD code): a disabled check passes; the right view's minimum at x - d must
+            # be reached within guard candidates of d
+            nl, nr = (near_l, near_r) if guard > 0 else (best, best)
             for x in range(w):
-                j = jbest[x]
                 b0 = best[x]
-                ok = max(b0, cps[x]) < big
-                ok &= tsum[x] >= t_need
-                if min_d_pos:
-                    ok &= j < num - 1
-                if guard >= 0:
-                    # the right view's minimum at x - d must be reached within guard candidates of d
-                    near = min(b0, min(near_l[x], near_r[x])) if guard > 0 else b0
-                    ok &= near <= rmin_p[x + 1 + np.int64(j)]
-                if uniq:
-                    ok &= np.float32(second[x]) > np.float32(b0) * ratio
+                near = min(b0, min(nl[x], nr[x]))
+                ok = (max(b0, cps[x]) < big) & (tsum[x] >= t_need)
+                ok &= (jbest[x] < last) | no_end_check
+                ok &= (near <= rm_at[x]) | no_lr
+                ok &= (np.float32(second[x]) > np.float32(b0) * ratio) | no_uniq
                 vrow[x] = ok
             # fast._tail: sub-pixel fit and variance in float32, in its order of operations
             drow, varrow = disparity[y], variance[y]
