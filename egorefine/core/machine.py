@@ -16,7 +16,7 @@ _THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS
 
 
 def cpu_model() -> str:
-    """The processor's model name (``/proc/cpuinfo`` on Linux, else :func:`platform.processor`).
+    """The processor's model name (``/proc/cpuinfo`` on Linux, else ``platform.processor()``).
 
     Returns:
         e.g. ``"AMD EPYC 7B13"``; the machine type (``"x86_64"``) where no model name can be read.
