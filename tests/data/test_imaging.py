@@ -38,6 +38,28 @@ def _warp_right(seq) -> tuple[torch.Tensor, torch.Tensor]:
 # ------------------------------------------------------------------------------------------------- ideal path
 
 
+# The stored render was made on one CPU; a correct renderer on another must pass and a changed one must fail.
+# Geometry (which face a ray hits, depth, occlusion) uses only correctly rounded float32 products, sums, quotients
+# and comparisons of coefficients set up in float64, so it comes out the same on every IEEE CPU. Shading does not:
+# exp, rsqrt, log2, the small matmuls, short sums and the trilinear lookup round differently with another SIMD
+# width or FMA (last bits), and at texel coordinates of several thousand one float32 step is ~5e-4 texel, so
+# intensities move by many float32 steps of their own (6e-8 near 1.0). The bounds hold renders whose every
+# shading value is jittered by a couple of dozen float32 steps (far beyond what vector and scalar kernels differ
+# by): all but 1 % of the pixels within 5e-5, every pixel within 5e-4. Changing one texture constant by 1 % (the
+# contrast, the squash, the mip prefilter) moves half the pixels or more by over 1e-4, the largest by ~1e-3: it fails.
+REPRO_BULK, REPRO_MAX, REPRO_SHARE = 5e-5, 5e-4, 0.01
+
+
+def _assert_reproduces(actual: torch.Tensor, expected: torch.Tensor, what: str, relative: bool = False) -> None:
+    """Every element within REPRO_MAX, and all but REPRO_SHARE of them within REPRO_BULK (of |expected| if relative)."""
+    err = (actual - expected).abs()
+    if relative:
+        err = err / expected.abs()
+    share = float((err > REPRO_BULK).float().mean())
+    assert float(err.max()) <= REPRO_MAX, f"{what}: largest difference {float(err.max()):.3g} > {REPRO_MAX:g}"
+    assert share <= REPRO_SHARE, f"{what}: {share:.1%} of the elements differ by more than {REPRO_BULK:g}"
+
+
 def test_ideal_reproduces_the_images_from_before_realistic_imaging() -> None:
     """The stored render was made by the renderer before imaging= existed (same cases, same seeds)."""
     ref = np.load(REFERENCE)
@@ -45,15 +67,18 @@ def test_ideal_reproduces_the_images_from_before_realistic_imaging() -> None:
     for preset, scene, motion in cases:
         s = render_sequence(num_frames=2, preset=preset, scene=scene, motion=motion, seed=5, height=24, width=40,
                             imaging="ideal")
-        for name in ("left", "right", "depth"):
-            # Bit-for-bit where the reference was made; a last-bit tolerance for other CPUs' float kernels.
-            torch.testing.assert_close(getattr(s, name), torch.from_numpy(ref[f"{preset}_{scene}_{name}"]),
-                                       atol=1e-6, rtol=0, msg=f"{scene} {name}")
+        for name in ("left", "right"):
+            _assert_reproduces(getattr(s, name), torch.from_numpy(ref[f"{preset}_{scene}_{name}"]), f"{scene} {name}")
+        # Depth in metres (up to ~60 m on the KITTI rig, where one float32 step is 4e-6): the same bounds, relative
+        # (geometry, so it comes out the same on every CPU; the bounds only spare a float64 set-up's last bit).
+        _assert_reproduces(s.depth, torch.from_numpy(ref[f"{preset}_{scene}_depth"]), f"{scene} depth", relative=True)
+        # Occlusion is geometry, so exact; besides, in these cases no pixel lies within many float32 steps of its
+        # decision, so not even a last-bit change of the set-up could flip one.
         assert torch.equal(s.occluded, torch.from_numpy(ref[f"{preset}_{scene}_occluded"])), scene
-        assert torch.equal(s.exposure, torch.ones(2, 2))
+        assert torch.equal(s.exposure, torch.ones(2, 2))  # ideal cameras: exactly one, by construction
     s = render_sequence(num_frames=1, height=24, width=32, seed=2, noise_std=0.02, imaging="ideal")
-    torch.testing.assert_close(s.left, torch.from_numpy(ref["noisy_left"]), atol=1e-6, rtol=0)
-    torch.testing.assert_close(s.right, torch.from_numpy(ref["noisy_right"]), atol=1e-6, rtol=0)
+    _assert_reproduces(s.left, torch.from_numpy(ref["noisy_left"]), "noisy left")
+    _assert_reproduces(s.right, torch.from_numpy(ref["noisy_right"]), "noisy right")
 
 
 def test_ideal_preset_is_ideal_and_realistic_is_the_default() -> None:

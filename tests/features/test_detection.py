@@ -34,8 +34,10 @@ def test_rgb_matches_grey_shape():
     kp, w = detect(img, max_features=30, grid=(2, 2))
     kp1, w1 = detect(img[:, :1], max_features=30, grid=(2, 2))
     assert kp.shape == (1, 30, 2)
-    # rgb_to_grayscale of equal channels is the same grey image.
-    torch.testing.assert_close(kp, kp1, atol=1e-4, rtol=0)
+    # rgb_to_grayscale of equal channels is the same grey image to a float32 step (the weights' sum rounds); the
+    # sub-pixel peak fit divides response differences, so positions agree to ~1e-4 px, and within the 1e-3 px that
+    # makes two keypoints the same keypoint (test_detect_numba's MATCH). The selection (0/1 weights) is exact.
+    torch.testing.assert_close(kp, kp1, atol=1e-3, rtol=0)
     torch.testing.assert_close(w, w1)
 
 

@@ -105,7 +105,9 @@ def test_float64_maps_against_exact_rotation(angle):
     K = K - K.transpose(1, 2)
     eye = torch.eye(3, dtype=torch.float64)
     R = eye + math.sin(angle) * K + 2 * math.sin(angle / 2) ** 2 * (K @ K)
-    torch.testing.assert_close(T[:, :3, :3], R, atol=4e-15, rtol=0)
+    # entries of at most 1: a handful of float64 steps (2.2e-16) from sin, cos and the products, whose last bits
+    # another CPU's kernels round differently; a wrong term of the series is many orders larger
+    torch.testing.assert_close(T[:, :3, :3], R, atol=1e-14, rtol=0)
     torch.testing.assert_close(se3_log(T), xi, atol=1e-13, rtol=0)
 
 

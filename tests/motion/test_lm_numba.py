@@ -28,15 +28,17 @@ def _both(monkeypatch, tr, **kw):
 @pytest.mark.parametrize("kw", [{}, {"loss": "huber"}, {"loss": "l2", "iterations": 6}, {"iterations": 1},
                                 {"scale": 0.5, "iterations": 4}])
 def test_compiled_lm_equals_torch_path(monkeypatch, dtype, kw):
-    # the same steps, acceptance rule and damping in float64: equal to the torch path's rounding
+    # the same steps, acceptance rule and damping in float64: equal to the torch path's rounding. A float32 torch
+    # path takes those discrete steps on float32 costs: an input one float32 step away (another CPU's rounding
+    # upstream) can end it an iteration off the float64 result, several times 1e-5 in the motion, ~1e-3 in a weight.
     tr = make_tracks(torch.tensor(TWISTS, dtype=dtype), num=300, noise=0.3, outliers=0.1, seed=4)
     a, r = _both(monkeypatch, tr, **kw)
-    tol = 1e-8 if dtype == torch.float64 else 2e-5
+    tol, wtol = (1e-8, 1e-6) if dtype == torch.float64 else (1e-4, 2e-3)
     assert torch.equal(a.ok, r.ok) and a.ok.all()
     assert torch.equal(a.num_inliers, r.num_inliers)
     torch.testing.assert_close(a.motion, r.motion, rtol=0, atol=tol)
-    torch.testing.assert_close(a.weights, r.weights, rtol=0, atol=100 * tol)
-    torch.testing.assert_close(a.rms, r.rms, rtol=0, atol=100 * tol)
+    torch.testing.assert_close(a.weights, r.weights, rtol=0, atol=wtol)
+    torch.testing.assert_close(a.rms, r.rms, rtol=0, atol=wtol)
     assert a.motion.dtype == dtype
 
 

@@ -18,6 +18,11 @@ TWISTS = [[0.02, -0.01, 0.1, 0.005, -0.01, 0.003], [0.0, 0.03, 0.08, -0.004, 0.0
 F64 = torch.float64
 # the compiled path runs in float64: it differs from the torch path by that path's rounding
 TOL = {torch.float32: 2e-5, F64: 1e-9}
+# The float32 torch path's LM also takes its discrete steps (accept a step, stop) on float32 costs: an input one
+# float32 step away (another CPU's rounding upstream) can end it an iteration off the float64 optimum, several times
+# TOL in the motion and ~1e-3 in a robust weight. Motion within SOLVE_TOL, weights and rms within 20 SOLVE_TOL;
+# float64 takes the same steps as the compiled path.
+SOLVE_TOL = {torch.float32: 1e-4, F64: 1e-9}
 
 
 def _both(monkeypatch, *args, **kw):
@@ -35,7 +40,7 @@ def _both(monkeypatch, *args, **kw):
 
 
 def _assert_same(a, r, dtype):
-    tol = TOL[dtype]
+    tol = SOLVE_TOL[dtype]
     assert torch.equal(a.ok, r.ok) and torch.equal(a.num_inliers, r.num_inliers)
     assert torch.equal(a.weights > 0, r.weights > 0)
     torch.testing.assert_close(a.motion, r.motion, rtol=0, atol=tol)

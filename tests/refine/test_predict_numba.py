@@ -143,7 +143,8 @@ def test_compiled_crack_closing_equals_torch_path(scene, monkeypatch, iterations
     assert (a.valid & ~pred.valid).any()  # it closed some
     torch.testing.assert_close(a.disparity, r.disparity, atol=1e-4, rtol=0)
     torch.testing.assert_close(a.variance, r.variance, atol=1e-4, rtol=1e-5)
-    torch.testing.assert_close(a.confidence, r.confidence, atol=1e-5, rtol=0)
+    # confidence = 1 / (1 + variance) moves by at most as much as the variance does: the variance's bound
+    torch.testing.assert_close(a.confidence, r.confidence, atol=1e-4, rtol=0)
     assert torch.equal(a.hole, pred.hole)
 
 
@@ -170,7 +171,7 @@ def test_compiled_finish_equals_torch_path(scene, monkeypatch, fill):
     assert bool(closed.any()) == fill
     torch.testing.assert_close(a.disparity, r.disparity, atol=1e-4, rtol=0)
     torch.testing.assert_close(a.variance, r.variance, atol=1e-4, rtol=1e-5)
-    torch.testing.assert_close(a.confidence, r.confidence, atol=1e-5, rtol=0)
+    torch.testing.assert_close(a.confidence, r.confidence, atol=1e-4, rtol=0)  # 1 / (1 + variance): as above
 
 
 @needs_numba

@@ -38,7 +38,10 @@ def test_colour_input_is_converted_to_grey(pair):
     d_rgb, v_rgb = block_matching(left.expand(-1, 3, -1, -1), right.expand(-1, 3, -1, -1), 16)
     assert d_rgb.shape == (2, 1, 64, 96)
     assert torch.equal(v_rgb, v_grey)
-    assert torch.allclose(d_rgb, d_grey, atol=1e-4)
+    # The grey of three equal channels is the channel to a float32 step (the weights' sum rounds). The integer
+    # matcher quantises grey levels, so such a step can tip one pixel's level: a window cost moves by one unit and
+    # the sub-pixel fit by ~1e-4 px, more where the cost curve is flat. Far below the matcher's accuracy.
+    assert torch.allclose(d_rgb, d_grey, atol=2e-3, rtol=0)
 
 
 @pytest.mark.parametrize("kw", [
