@@ -35,12 +35,14 @@ the README table and a row figure per sequence.
     python benchmarks/refine.py --quick          # two tiny sequences, a few frames: a smoke run
     python benchmarks/refine.py --only kitti_street_turn_x3   # one (or a comma-separated few), full size
     python benchmarks/refine.py --report-from benchmarks/results/refine.json  # the README from a saved run
+    python benchmarks/refine.py --render-only    # render the sequences into the cache (later runs reuse them)
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import inspect
 import json
 import statistics
@@ -142,13 +144,32 @@ def every_nth(seq: StereoSequence, n: int) -> StereoSequence:
     return dataclasses.replace(seq, **kept)
 
 
-def render(spec: Spec, frames: int, size: tuple[int, int] | None, seed: int, imaging: str | None) -> StereoSequence:
+def render(spec: Spec, frames: int, size: tuple[int, int] | None, seed: int, imaging: str | None,
+           cache: bool = False) -> StereoSequence:
+    """The sequence of ``spec``; with ``cache``, read from (or written to) the git-ignored cache folder, keyed by
+    every argument and the renderer's source (rendering takes about as long as running every method)."""
     extra = {} if size is None else {"height": size[0], "width": size[1]}
     if imaging is not None:
         extra["imaging"] = imaging
+    path = None
+    if cache:
+        key = hashlib.sha1(repr((spec, frames, size, seed, imaging, _renderer_digest())).encode()).hexdigest()[:16]
+        path = RESULTS / "cache" / f"refine_{spec.name}_{key}.pt"
+        if path.exists():
+            return torch.load(path, weights_only=False)
     seq = render_sequence(num_frames=(frames - 1) * spec.step + 1, preset=spec.preset, scene=spec.scene,
                           motion=spec.motion, seed=seed, **extra)
-    return every_nth(seq, spec.step)
+    seq = every_nth(seq, spec.step)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(seq, path)
+    return seq
+
+
+def _renderer_digest() -> str:
+    """A digest of the renderer's source files: a cached render is stale once any of them changes."""
+    files = sorted((Path(__file__).resolve().parents[1] / "egorefine" / "data").glob("*.py"))
+    return hashlib.sha1(b"".join(f.read_bytes() for f in files)).hexdigest()
 
 
 def _u8(img: torch.Tensor) -> np.ndarray:
@@ -233,9 +254,9 @@ def check_matchers(m: dict[str, dict]) -> dict[str, bool]:
 
 
 def benchmark_sequence(spec: Spec, frames: int, size, seed: int, imaging: str | None, holes: bool,
-                       figure_dir: Path | None) -> dict:
+                       figure_dir: Path | None, cache: bool = False) -> dict:
     t0 = time.perf_counter()
-    seq = render(spec, frames, size, seed, imaging)
+    seq = render(spec, frames, size, seed, imaging, cache)
     render_s = time.perf_counter() - t0
     T, _, H, W = seq.left.shape
     max_disp = min(MAX_DISPARITY[spec.preset], (W // 16) * 16 - 16)
@@ -391,6 +412,8 @@ def main() -> None:
                         help="run on the tuning seeds; writes results/cache/refine_tune.json only")
     parser.add_argument("--imaging", default=None, help="passed to render_sequence (default: its own default)")
     parser.add_argument("--no-holes", action="store_true", help="skip the opt-in local search + holes row")
+    parser.add_argument("--render-only", action="store_true",
+                        help="render the chosen sequences into results/cache (reused by later runs) and stop")
     parser.add_argument("--report-from", default=None, metavar="JSON",
                         help="re-render the tables (and the README, for a reported run) from a saved run's JSON")
     args = parser.parse_args()
@@ -420,11 +443,18 @@ def main() -> None:
             continue
         seed = seed_of(index, args.tune)
         size = QUICK_SIZE[spec.preset] if args.quick else None
+        if args.render_only:
+            t1 = time.perf_counter()
+            render(spec, frames, size, seed, args.imaging, cache=True)
+            print(f"[{spec.name}, seed {seed}] rendered or found in {time.perf_counter() - t1:.1f} s", file=sys.stderr)
+            continue
         r = benchmark_sequence(spec, frames, size, seed, args.imaging, not args.no_holes,
-                               None if partial else RESULTS)
+                               None if partial else RESULTS, cache=not args.quick)
         r["imaging"] = imaging
         results.append(r)
     total_s = time.perf_counter() - t0
+    if args.render_only:
+        return
     if not args.tune and any(r["seed"] in TUNING_SEEDS for r in results):
         raise RuntimeError("a reported sequence drew a tuning seed")  # SEQUENCES grew past the seed layout
 
