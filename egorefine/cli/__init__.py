@@ -26,7 +26,8 @@ from ._demo import _demo
 from ._eval import _eval
 from ._eval import evaluate_disparity_folders as evaluate_disparity_folders
 from ._eval import evaluate_trajectory_files as evaluate_trajectory_files
-from ._run import _folder, _run
+from ._run import _folder, _run, parse_outputs
+from ._shared import _FRAME_DIRS
 
 __all__ = ["main", "parse_frame_range"]
 
@@ -192,7 +193,8 @@ def _build_parser() -> argparse.ArgumentParser:
         "(1 + variance), PNG16 stores it as value / 65535), preview/ (colour, grey = invalid), "
         "trajectory_tum.txt and trajectory_kitti.txt (world_T_camera, the formats evo reads; "
         "groundtruth_*.txt too where the recording has poses) and run.json (settings, version, "
-        "calibration, timings), written last.",
+        "calibration, timings, frames/s), written last. --outputs chooses the per-frame folders; they are "
+        "written on background threads while the next frames are refined.",
         _run,
     )
     run.add_argument("input", metavar="INPUT", help="the sequence: a folder (or, for some layouts, a file) "
@@ -221,6 +223,9 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--format", default="png16", choices=["png16", "npy", "pfm"],
                      help="disparity and confidence files: KITTI 16-bit PNG (1/256 px steps, 0 = invalid), float32 "
                           "npy (NaN = invalid) or PFM (+inf = invalid)")
+    run.add_argument("--outputs", type=parse_outputs, default=",".join(_FRAME_DIRS), metavar="NAME[,NAME...]",
+                     help="per-frame files to write, comma-separated: disparity, valid, confidence, preview; 'none' "
+                          "writes only the trajectory and run.json")
     run.add_argument("--batch-size", type=_only_one, default=1, metavar="1",
                      help="frames per refiner call; only 1: each frame is predicted from the previous one's "
                           "state, so the frames of one sequence cannot be batched (the library's API batches "

@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import functools
+import os
+import queue
 import shutil
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +22,106 @@ from ._shared import _FRAME_DIRS, _RUN_JSON, _TRAJECTORY_FILES, _write_json
 
 # Colour of the preview pixels without a value (mid grey: outside the turbo colour map).
 _INVALID_RGB = (128, 128, 128)
+# The writer's threads and how many frames may wait for them before the refiner waits in turn.
+_WRITER_THREADS = min(2, os.cpu_count() or 1)
+_WRITER_DEPTH = 2 * _WRITER_THREADS
+
+
+def parse_outputs(text: str) -> tuple[str, ...]:
+    """The ``--outputs`` type: comma-separated names of per-frame outputs (``none``: trajectory and run.json only).
+
+    Example:
+        >>> parse_outputs("preview, disparity"), parse_outputs("none")
+        (('disparity', 'preview'), ())
+    """
+    names = {name.strip() for name in text.split(",")}
+    if names == {"none"}:
+        return ()
+    if not names <= set(_FRAME_DIRS):
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(_FRAME_DIRS)} (or none "
+                                         f"alone), got {text!r}")
+    return tuple(name for name in _FRAME_DIRS if name in names)
+
+
+class _Writer:
+    """Runs jobs (writing one frame's files) on background threads while the caller refines the next frames.
+
+    :meth:`submit` blocks while ``depth`` jobs wait, so at most that many frames are held in memory. The first
+    error a job raises is raised again by the next :meth:`submit` or by :meth:`close`; the jobs queued after it
+    are dropped. ``ms`` holds each finished job's time on its thread, ``wait_s`` the time the caller spent
+    waiting for the threads (a full queue, the final drain).
+    """
+
+    def __init__(self, threads: int, depth: int):
+        self._jobs: queue.Queue = queue.Queue(maxsize=depth)
+        self._error: BaseException | None = None
+        self._stopped = False
+        self.ms: list[float] = []
+        self.wait_s = 0.0
+        self._threads = [threading.Thread(target=self._work, name=f"egorefine-writer-{i}", daemon=True)
+                         for i in range(threads)]
+        for thread in self._threads:
+            thread.start()
+
+    def _work(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            if self._error is not None or self._stopped:
+                continue
+            t0 = time.perf_counter()
+            try:
+                job()
+            except BaseException as err:  # noqa: BLE001 - handed to the caller's thread, raised there
+                self._error = self._error or err
+            else:
+                self.ms.append((time.perf_counter() - t0) * 1e3)
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def submit(self, job: Callable[[], object]) -> None:
+        """Queue ``job``, waiting while the queue is full; raises the error of an earlier job."""
+        self._raise()
+        t0 = time.perf_counter()
+        self._jobs.put(job)
+        self.wait_s += time.perf_counter() - t0
+
+    def close(self, drop: bool = False) -> None:
+        """Wait for the queued jobs (or drop them) and end the threads; raises a job's error unless ``drop``."""
+        if self._threads:
+            self._stopped = drop
+            t0 = time.perf_counter()
+            for _ in self._threads:
+                self._jobs.put(None)
+            for thread in self._threads:
+                thread.join()
+            self._threads = []
+            self.wait_s += time.perf_counter() - t0
+        if not drop:
+            self._raise()
+
+
+def _write_frame(out: Path, stem: str, outputs: tuple[str, ...], fmt: str, max_disparity: int,
+                 disparity: np.ndarray, valid: np.ndarray, confidence: np.ndarray | None) -> None:
+    """Write the ``outputs`` of one frame (run on a writer thread, from arrays no later frame touches)."""
+    from ..data import write_confidence, write_disparity, write_mask, write_preview
+    from ..viz import colorize_disparity
+
+    if "disparity" in outputs:
+        write_disparity(out / "disparity" / stem, disparity, valid, fmt)
+    if "valid" in outputs:
+        write_mask(out / "valid" / f"{stem}.png", valid)
+    if "confidence" in outputs:
+        write_confidence(out / "confidence" / stem, confidence, fmt)
+    if "preview" in outputs:
+        write_preview(out / "preview" / f"{stem}.png",
+                      colorize_disparity(torch.from_numpy(disparity), max_disparity, torch.from_numpy(valid),
+                                         invalid_color=_INVALID_RGB))
+
+
+def _own_copy(x: torch.Tensor) -> np.ndarray:
+    """``x`` as a CPU numpy array sharing no memory with it (the refiner may reuse its tensors next frame)."""
+    return x.detach().cpu().numpy().copy()
 
 
 def _device(name: str) -> torch.device:
@@ -80,7 +185,8 @@ def _write_trajectories(out: Path, prefix: str, poses: torch.Tensor, stamps: np.
 
 def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dict, files: list[str],
                 timings: dict) -> dict:
-    """What run.json holds: version, settings, calibration, frame counts, the meaning of each output, timings."""
+    """What run.json holds: version, settings, calibration, frame counts, the meaning of each output written,
+    timings."""
     H, W = rec.image_size
     suffix = _format_suffix(args.format)
     settings = {k: v for k, v in vars(args).items() if k not in ("func", "argv")}
@@ -88,6 +194,16 @@ def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dic
         start, stop, step = (("" if v is None else str(v)) for v in (args.frames.start, args.frames.stop,
                                                                      args.frames.step))
         settings["frames"] = f"{start}:{stop}" + (f":{step}" if step else "")
+    per_frame = {
+        "disparity": f"disparity/<frame>{suffix}: "
+                     + {"png16": "uint16 PNG, disparity = value / 256 px, 0 = invalid",
+                        "pfm": "float32 PFM, px, +inf = invalid",
+                        "npy": "float32 npy, px, NaN = invalid"}[args.format],
+        "valid": "valid/<frame>.png: uint8, 255 = valid",
+        "confidence": f"confidence/<frame>{suffix}: 1 / (1 + variance px^2) in [0, 1]"
+                      + (", stored as value / 65535" if args.format == "png16" else ""),
+        "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid",
+    }
     return {
         "egorefine_version": __version__,
         "torch_version": torch.__version__,
@@ -103,14 +219,7 @@ def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dic
         },
         "frames": frames,
         "outputs": {
-            "disparity": f"disparity/<frame>{suffix}: "
-                         + {"png16": "uint16 PNG, disparity = value / 256 px, 0 = invalid",
-                            "pfm": "float32 PFM, px, +inf = invalid",
-                            "npy": "float32 npy, px, NaN = invalid"}[args.format],
-            "valid": "valid/<frame>.png: uint8, 255 = valid",
-            "confidence": f"confidence/<frame>{suffix}: 1 / (1 + variance px^2) in [0, 1]"
-                          + (", stored as value / 65535" if args.format == "png16" else ""),
-            "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid",
+            **{name: text for name, text in per_frame.items() if name in args.outputs},
             "trajectory": files,
             "trajectory_frame": "world_T_camera of the rectified left camera; starts at the recording's first "
                                 "true pose where it has one, else at the identity",
@@ -119,10 +228,19 @@ def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dic
     }
 
 
-def _run(args: argparse.Namespace) -> int:
-    from ..data import open_recording, write_confidence, write_disparity, write_mask, write_preview
+def _refiner(args: argparse.Namespace):
+    """The refiner the options of ``egorefine run`` ask for."""
     from ..refine import EgoMotionRefiner, StereoOptions
-    from ..viz import colorize_disparity
+
+    cost, _, aggregation = args.matcher.partition("+")
+    return EgoMotionRefiner(max_disparity=args.max_disparity, verify_every=args.verify_every, fusion=args.fusion,
+                            motion_method=args.motion,
+                            stereo=StereoOptions(cost=cost, aggregation=aggregation or "box",
+                                                 fill=False if args.no_fill else None))
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..data import open_recording
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -138,43 +256,44 @@ def _run(args: argparse.Namespace) -> int:
     H, W = rec.image_size
     if not args.max_disparity < W:
         raise ValueRangeError(f"--max-disparity: expected less than the image width {W}, got {args.max_disparity}")
-    cost, _, aggregation = args.matcher.partition("+")
-    refiner = EgoMotionRefiner(max_disparity=args.max_disparity, verify_every=args.verify_every, fusion=args.fusion,
-                               motion_method=args.motion,
-                               stereo=StereoOptions(cost=cost, aggregation=aggregation or "box",
-                                                    fill=False if args.no_fill else None))
+    refiner = _refiner(args)
     K = rec.K.to(device=device, dtype=torch.float32)[None]
     baseline = torch.tensor([float(rec.baseline)], device=device)
     t_open = time.perf_counter() - t_start
     _clear_output(out)  # only once the input is known to be good: bad input leaves an earlier run as it was
-    for name in _FRAME_DIRS:
-        (out / name).mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in args.outputs:
+        (out / name).mkdir(exist_ok=True)
 
     world_T_camera = [torch.eye(4, dtype=torch.float64) if rec.poses is None else rec.poses[0].double().cpu()]
-    refine_ms, write_ms, stereo_frames, motion_failed = [], [], 0, 0
+    refine_ms, stereo_frames, motion_failed = [], 0, 0
     state = None
-    with torch.no_grad():
-        for t in progress(range(T), total=T, desc="egorefine run", enabled=not args.quiet):
-            left, right = rec[t]
-            left, right = left.to(device), right.to(device)
-            t0 = time.perf_counter()
-            result, state = refiner(left, right, K, baseline, state)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            refine_ms.append((time.perf_counter() - t0) * 1e3)
-            t0 = time.perf_counter()
-            if t > 0:  # compose camera_t_T_camera_{t-1} into world_T_camera_t
-                world_T_camera.append(world_T_camera[-1] @ torch.linalg.inv(result.motion[0].double().cpu()))
-            stereo_frames += bool(result.stereo_ran)
-            motion_failed += int(not bool(result.motion_ok[0]))
-            disp, valid = result.disparity[0, 0].cpu(), result.valid[0, 0].cpu()
-            stem = rec.names[t]
-            write_disparity(out / "disparity" / stem, disp, valid, args.format)
-            write_mask(out / "valid" / f"{stem}.png", valid)
-            write_confidence(out / "confidence" / stem, result.confidence[0, 0].cpu(), args.format)
-            write_preview(out / "preview" / f"{stem}.png",
-                          colorize_disparity(disp, args.max_disparity, valid, invalid_color=_INVALID_RGB))
-            write_ms.append((time.perf_counter() - t0) * 1e3)
+    write = functools.partial(_write_frame, out, outputs=args.outputs, fmt=args.format,
+                              max_disparity=args.max_disparity)
+    writer = _Writer(_WRITER_THREADS, _WRITER_DEPTH)
+    t_loop = time.perf_counter()
+    try:
+        with torch.no_grad():
+            for t in progress(range(T), total=T, desc="egorefine run", enabled=not args.quiet):
+                left, right = rec[t]
+                left, right = left.to(device), right.to(device)
+                t0 = time.perf_counter()
+                result, state = refiner(left, right, K, baseline, state)
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                refine_ms.append((time.perf_counter() - t0) * 1e3)
+                if t > 0:  # compose camera_t_T_camera_{t-1} into world_T_camera_t
+                    world_T_camera.append(world_T_camera[-1] @ torch.linalg.inv(result.motion[0].double().cpu()))
+                stereo_frames += bool(result.stereo_ran)
+                motion_failed += int(not bool(result.motion_ok[0]))
+                if args.outputs:
+                    confidence = _own_copy(result.confidence[0, 0]) if "confidence" in args.outputs else None
+                    writer.submit(functools.partial(write, rec.names[t], disparity=_own_copy(result.disparity[0, 0]),
+                                                    valid=_own_copy(result.valid[0, 0]), confidence=confidence))
+        writer.close()  # the frames still queued are written (or their error raised) before anything else
+    finally:
+        writer.close(drop=True)
+    loop_s = time.perf_counter() - t_loop
 
     poses = _nearest_rigid(torch.stack(world_T_camera))
     files = _write_trajectories(out, "trajectory", poses, rec.timestamps)
@@ -183,19 +302,27 @@ def _run(args: argparse.Namespace) -> int:
     timings = {
         "open_s": t_open,
         "total_s": time.perf_counter() - t_start,
+        "loop_s": loop_s,
+        "frames_per_s": T / loop_s,
         "refine_ms_first_frame": refine_ms[0],
         "refine_ms_median": float(np.median(refine_ms)),
         "refine_ms_mean_after_first": float(np.mean(refine_ms[1:])),
-        "write_ms_mean": float(np.mean(write_ms)),
-        "note": "the first frame includes numba's compilation of the kernels",
+        "write_ms_mean": float(np.mean(writer.ms)) if writer.ms else 0.0,
+        "writer_threads": _WRITER_THREADS,
+        "writer_wait_s": writer.wait_s,
+        "note": "loop_s: reading, refining and writing every frame, the wait for the last files included; "
+                "frames_per_s = frames / loop_s; write_ms_mean: one frame's files on a writer thread, in parallel "
+                "with refining; writer_wait_s: time refining waited for the writer; the first frame includes "
+                "numba's compilation of the kernels",
     }
     frames = {"count": T, "first": rec.names[0], "last": rec.names[-1], "stereo_ran": stereo_frames,
               "motion_failed": motion_failed, "has_groundtruth_poses": rec.poses is not None}
     report = _run_report(args, rec, device, frames, files, timings)
     _write_json(out / _RUN_JSON, report)
     if not args.quiet:
-        print(f"egorefine run: {T} frames ({W}x{H}) -> {out}/ (stereo on {stereo_frames}, "
-              f"{float(np.median(refine_ms)):.1f} ms/frame median); trajectory: {', '.join(files)}", file=sys.stderr)
+        print(f"egorefine run: {T} frames ({W}x{H}) -> {out}/ at {T / loop_s:.2f} frames/s (stereo on "
+              f"{stereo_frames}, refining {float(np.median(refine_ms)):.1f} ms/frame median); trajectory: "
+              f"{', '.join(files)}", file=sys.stderr)
     return 0
 
 

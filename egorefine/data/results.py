@@ -45,6 +45,9 @@ PathLike = str | os.PathLike
 #: format name -> file suffix of the disparity and confidence files
 DISPARITY_FORMATS = {"png16": ".png", "pfm": ".pfm", "npy": ".npy"}
 
+# The PNG writers pass OpenCV no encoder parameters on purpose: its default (zlib level 1, SUB filter, RLE strategy)
+# is its fastest setting, and an explicit IMWRITE_PNG_COMPRESSION level drops that tuning (docs/cli.md, egorefine run).
+
 
 @contextlib.contextmanager
 def atomic_path(path: PathLike) -> Iterator[Path]:
