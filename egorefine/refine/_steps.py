@@ -4,7 +4,6 @@ the features land. Each has a compiled CPU form beside its torch rule (:func:`eg
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from ..core import use_compiled
@@ -69,21 +68,14 @@ def _overrule(
     """The corrected ``(disparity, variance, valid, outliers)`` with the recovery rules of a verification applied:
     items in ``restart`` ``(B,)`` take the measurement whole (their motion failed), items in ``keep`` ``(B,)`` the
     prediction whole (their stereo failed), and elsewhere the pixels of ``regions`` ``(B, 1, H, W)`` take the
-    measurement; taken pixels get a zero outlier count. CPU maps without gradient are written with numpy (no torch
-    pass over the full maps), others with the same rule in torch."""
+    measurement; taken pixels get a zero outlier count. Float32 CPU maps without gradient take one compiled pass
+    per map (:func:`egorefine.refine._fuse_numba.overrule`), others the same rule in torch."""
     disparity, variance, valid, outliers = maps
-    tensors = (disparity, variance, outliers, pred.disparity, pred.variance, meas.disparity, meas.variance)
-    if use_compiled(*tensors, valid, pred.valid, meas.valid, regions):
-        item_keep, item_restart = keep.numpy()[:, None, None, None], restart.numpy()[:, None, None, None]
-        take = (regions.numpy() & ~item_keep) | item_restart
-
-        def pick_np(corrected, predicted, measured):
-            chosen = np.where(take, measured.numpy(), corrected.numpy())
-            return torch.from_numpy(np.where(item_keep & ~item_restart, predicted.numpy(), chosen))
-
-        return (pick_np(disparity, pred.disparity, meas.disparity), pick_np(variance, pred.variance, meas.variance),
-                pick_np(valid, pred.valid, meas.valid),
-                torch.from_numpy(np.where(take | item_keep, 0, outliers.numpy()).astype(outliers.numpy().dtype)))
+    masks = (valid, pred.valid, meas.valid, regions, keep, restart)
+    if all(m.dtype == torch.bool for m in masks) and use_compiled(  # (the kernel reads bool masks)
+            disparity, variance, outliers, pred.disparity, pred.variance, meas.disparity, meas.variance, *masks):
+        return _fuse_numba.overrule(maps, (pred.disparity, pred.variance, pred.valid),
+                                    (meas.disparity, meas.variance, meas.valid), keep, restart, regions)
     item_keep, item_restart = keep[:, None, None, None], restart[:, None, None, None]
     take = (regions & ~item_keep) | item_restart
 

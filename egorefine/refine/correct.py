@@ -256,11 +256,16 @@ def correct_disparity(
     ):
         if t is not None:
             check_shape(t, ["B", "1", "H", "W"], name, dims)
-    check_finite(predicted, "predicted")
-    check_finite(measured, "measured")
-    for name, t in (("predicted_variance", predicted_variance), ("measured_variance", measured_variance)):
-        if t is not None:
-            check_variance(t, name)
+    # float32 CPU maps: one compiled pass per map says whether the checks below would pass
+    variances = (predicted_variance, measured_variance)
+    if not (all(t is None or t.dtype == torch.float32 for t in (predicted, measured, *variances))
+            and use_compiled(predicted, measured, *variances) and _fuse_numba.plausible((predicted, measured),
+                                                                                         variances)):
+        check_finite(predicted, "predicted")
+        check_finite(measured, "measured")
+        for name, t in (("predicted_variance", predicted_variance), ("measured_variance", measured_variance)):
+            if t is not None:
+                check_variance(t, name)
     check_same_device(
         predicted,
         "predicted",

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.tiles import tile_shares
+from ..core import use_compiled
+from . import _health_numba
 
 __all__ = [
     "Status",
@@ -138,12 +139,13 @@ def stereo_failed(measured_valid: torch.Tensor, reference: torch.Tensor) -> torc
 def count_per_item(mask: torch.Tensor) -> torch.Tensor:
     """``(B,)`` int64: the True pixels of each item of a ``(B, ...)`` bool mask.
 
-    CPU masks are counted with numpy: a torch reduction over a full map would wake torch's OpenMP threads, which
-    then spin beside the compiled kernels of the next stage.
+    CPU masks are counted with numpy, item by item: a torch reduction over a full map would wake torch's OpenMP
+    threads, which then spin beside the compiled kernels of the next stage (and numpy counts a whole array much
+    faster than along an axis).
     """
     if mask.device.type == "cpu":
         flat = mask.detach().reshape(mask.shape[0], -1).numpy()
-        return torch.from_numpy(np.count_nonzero(flat, axis=1).astype(np.int64))
+        return torch.tensor([np.count_nonzero(item) for item in flat], dtype=torch.int64)
     return mask.flatten(1).sum(1)
 
 
@@ -154,7 +156,8 @@ def disagreeing_regions(
 
     A tile of :data:`DISAGREEMENT_TILE` px qualifies where over :data:`DISAGREEMENT_SHARE` of the pixels valid in
     both maps differ by more than :data:`DISAGREEMENT_PX`, and at least :data:`DISAGREEMENT_MIN_SUPPORT` of its
-    pixels are valid in both. The decision is piecewise constant (no gradient flows through it).
+    pixels are valid in both. The decision is piecewise constant (no gradient flows through it). Float32 CPU maps
+    with bool masks take a compiled pass (:mod:`egorefine.refine._health_numba`), others the rule in torch.
 
     Args:
         predicted, measured: ``(B, 1, H, W)`` disparity, px.
@@ -167,15 +170,12 @@ def disagreeing_regions(
         >>> disagreeing_regions(e, ok, s, ok)[0, 0, ::8, ::8].tolist()[:2]
         [[True, False, False, False], [False, False, False, False]]
     """
-    if predicted.device.type == "cpu":  # numpy: no torch pass over the full map (see count_per_item)
-        return torch.from_numpy(_disagreeing_regions_numpy(
-            predicted.detach().numpy(), predicted_valid.numpy(), measured.detach().numpy(), measured_valid.numpy()))
-    return _disagreeing_regions_torch(predicted, predicted_valid, measured, measured_valid)
-
-
-def _disagreeing_regions_torch(predicted: torch.Tensor, predicted_valid: torch.Tensor, measured: torch.Tensor,
-                               measured_valid: torch.Tensor) -> torch.Tensor:
-    """:func:`disagreeing_regions` in torch (other devices), the same rule."""
+    # (the kernel reads bool masks; no gradient flows through the decision, so one wanted through the maps is none)
+    if predicted_valid.dtype == measured_valid.dtype == torch.bool and use_compiled(
+            predicted.detach(), predicted_valid, measured.detach(), measured_valid):
+        return _health_numba.disagreeing_regions(predicted, predicted_valid, measured, measured_valid,
+                                                 DISAGREEMENT_TILE, DISAGREEMENT_PX, DISAGREEMENT_MIN_SUPPORT,
+                                                 DISAGREEMENT_SHARE)
     H, W = predicted.shape[-2:]
     with torch.no_grad():
         both = predicted_valid & measured_valid
@@ -185,14 +185,3 @@ def _disagreeing_regions_torch(predicted: torch.Tensor, predicted_valid: torch.T
         share_off = F.avg_pool2d(off.to(predicted.dtype), tile, tile, ceil_mode=True)
         region = (support >= DISAGREEMENT_MIN_SUPPORT) & (share_off > DISAGREEMENT_SHARE * support)
         return region.repeat_interleave(tile, -2).repeat_interleave(tile, -1)[..., :H, :W]
-
-
-def _disagreeing_regions_numpy(predicted: np.ndarray, predicted_valid: np.ndarray, measured: np.ndarray,
-                               measured_valid: np.ndarray) -> np.ndarray:
-    """:func:`disagreeing_regions` in numpy, the same rule."""
-    H, W = predicted.shape[-2:]
-    both = predicted_valid & measured_valid
-    off = both & (np.abs(predicted - measured) > DISAGREEMENT_PX)
-    support, share_off = tile_shares(both, DISAGREEMENT_TILE), tile_shares(off, DISAGREEMENT_TILE)
-    region = (support >= DISAGREEMENT_MIN_SUPPORT) & (share_off > DISAGREEMENT_SHARE * support)
-    return np.ascontiguousarray(region.repeat(DISAGREEMENT_TILE, -2).repeat(DISAGREEMENT_TILE, -1)[..., :H, :W])

@@ -257,6 +257,28 @@ def test_exceptions():
         correct_disparity(e, e, None, fusion="kalman", reset_after=0)
 
 
+@pytest.mark.parametrize("compiled", [True, False])  # float32 CPU maps: a compiled scan decides, else the checks
+@pytest.mark.parametrize(("name", "value", "message"), [
+    ("predicted", float("nan"), "predicted: contains NaN or Inf"),
+    ("measured", float("-inf"), "measured: contains NaN or Inf"),
+    ("predicted_variance", -0.5, "predicted_variance: expected finite values >= 0"),
+    ("measured_variance", float("inf"), "measured_variance: expected finite values >= 0"),
+    ("measured_variance", float("nan"), "measured_variance: expected finite values >= 0"),
+])
+def test_values_are_checked_on_both_paths(compiled, name, value, message, monkeypatch):
+    from egorefine.core import dispatch
+
+    monkeypatch.setattr(dispatch, "ENABLED", compiled)
+    maps = {key: torch.full((1, 1, 30, 40), 0.5) for key in ("predicted", "measured", "predicted_variance",
+                                                             "measured_variance")}
+    maps[name][0, 0, 17, 23] = value
+    with pytest.raises(ValueRangeError, match=message):
+        correct_disparity(fusion="kalman", measured_valid=None, **maps)
+    maps[name][0, 0, 17, 23] = 0.0  # -0.0 and 0 pass
+    maps["predicted_variance"][0, 0, 3, 4] = -0.0
+    correct_disparity(fusion="kalman", measured_valid=None, **maps)
+
+
 @pytest.mark.parametrize("fusion", ["paper", "kalman"])
 def test_batch_consistency_and_module(fusion):
     g = torch.Generator().manual_seed(2)

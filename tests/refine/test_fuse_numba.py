@@ -9,11 +9,13 @@ from egorefine.core import dispatch
 from egorefine.refine import _fuse_numba, correct_disparity
 
 
+@pytest.mark.parametrize("shape", [(2, 1, 48, 64), (1, 1, 300, 301)])  # the second: bands of pixels on threads
 @pytest.mark.parametrize("options", [{}, {"max_unverified_variance": 0.0625},
                                      {"reset_after": 2, "kalman_gate": 3.0, "min_variance": 1e-3}])
-def test_compiled_kalman_equals_torch(options, monkeypatch):
+def test_compiled_kalman_equals_torch(options, shape, monkeypatch):
+    """Bit for bit: the kernel does the torch path's float32 operations one by one (no fused multiply-add, which
+    numba does not form without fast-math), each correctly rounded on any CPU, and selects instead of branches."""
     gen = torch.Generator().manual_seed(0)
-    shape = (2, 1, 48, 64)
     e = torch.rand(shape, generator=gen) * 40
     s = e + torch.randn(shape, generator=gen) * 0.6
     m_ok = torch.rand(shape, generator=gen) > 0.1
@@ -47,3 +49,28 @@ def test_compiled_confidence_equals_the_formula():
     valid = torch.rand(2, 1, 300, 400, generator=g) > 0.3
     out = _fuse_numba.confidence(valid, variance)
     assert torch.equal(out, valid.to(variance.dtype) / (1.0 + variance))  # bit for bit
+
+
+@pytest.mark.parametrize("margin", [0.5, None])
+def test_compiled_hole_take_over_equals_torch(margin, monkeypatch):
+    """The refiner's take-over of hole measurements, random maps large enough to be split into bands: bit for bit
+    (selects of the inputs and one correctly rounded division)."""
+    from egorefine.refine._steps import _take_hole_measurements
+    from egorefine.refine.predict import Prediction
+    from egorefine.stereo import StereoOutput
+
+    g = torch.Generator().manual_seed(7)
+    shape = (2, 1, 200, 330)
+    d, var = torch.rand(shape, generator=g) * 30, torch.rand(shape, generator=g)
+    valid, count = torch.rand(shape, generator=g) > 0.4, (torch.rand(shape, generator=g) * 3).floor()
+    meas = StereoOutput(d + torch.randn(shape, generator=g), torch.rand(shape, generator=g) > 0.2,
+                        torch.rand(shape, generator=g) * 0.5)
+    hole = torch.rand(shape, generator=g) > 0.5
+    pred = Prediction(d + torch.randn(shape, generator=g), var, hole, ~hole, torch.zeros(shape))
+    outs = []
+    for compiled in (True, False):
+        monkeypatch.setattr(dispatch, "ENABLED", compiled)
+        outs.append(_take_hole_measurements(d, var, valid, count, meas, pred, 0.2, margin))
+    for fast, ref in zip(*outs, strict=True):
+        assert torch.equal(fast, ref)
+    assert (outs[1][2] & ~valid).any()  # some holes were taken

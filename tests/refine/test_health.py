@@ -134,28 +134,33 @@ def test_ordinary_frames_raise_no_flag_but_resets(sequence):
             assert int(out.status[0]) & ~int(Status.PREDICTION_RESET) == 0
 
 
-@pytest.mark.parametrize("shape", [(2, 1, 37, 53), (1, 1, 24, 40), (3, 1, 100, 7)])
-def test_disagreeing_regions_numpy_and_torch_agree(shape):
-    from egorefine.refine.health import _disagreeing_regions_torch
+@pytest.mark.parametrize("shape", [(2, 1, 37, 53), (1, 1, 24, 40), (3, 1, 100, 7), (1, 1, 300, 301)])
+def test_disagreeing_regions_compiled_and_torch_agree(shape, monkeypatch):
+    """The compiled pass and the torch path decide alike, tiles cut by the borders included (the last shape is
+    split into bands of tile rows). Bit for bit: both count 0/1 pixels exactly and divide in float32."""
+    from egorefine.core import dispatch
 
     g = torch.Generator().manual_seed(sum(shape))
     e = torch.rand(shape, generator=g) * 3
     s = e + (torch.rand(shape, generator=g) > 0.4).float() * 2
     ev, sv = torch.rand(shape, generator=g) > 0.3, torch.rand(shape, generator=g) > 0.2
-    numpy_path = disagreeing_regions(e, ev, s, sv)
-    assert numpy_path.any() and not numpy_path.all()
-    assert torch.equal(numpy_path, _disagreeing_regions_torch(e, ev, s, sv))
+    compiled = disagreeing_regions(e, ev, s, sv)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
+    reference = disagreeing_regions(e, ev, s, sv)
+    assert compiled.any() and not compiled.all()
+    assert torch.equal(compiled, reference)
 
 
-def test_overrule_numpy_and_torch_agree(monkeypatch):
-    """The recovery rules written with numpy (CPU, no gradient) and with torch give the same maps."""
+@pytest.mark.parametrize("shape", [(4, 1, 12, 17), (4, 1, 260, 270)])  # the second: bands of pixels on threads
+def test_overrule_compiled_and_torch_agree(shape, monkeypatch):
+    """The recovery rules compiled (CPU, no gradient) and in torch give the same maps, for every combination of
+    an item's keep and restart."""
     from egorefine.core import dispatch
     from egorefine.refine._steps import _overrule
     from egorefine.refine.predict import Prediction
     from egorefine.stereo import StereoOutput
 
     g = torch.Generator().manual_seed(5)
-    shape = (3, 1, 12, 17)
 
     def maps():
         return (torch.rand(shape, generator=g) * 9, torch.rand(shape, generator=g),
@@ -165,7 +170,7 @@ def test_overrule_numpy_and_torch_agree(monkeypatch):
     p, m = maps(), maps()
     pred = Prediction(p[0], p[1], ~p[2], p[2], torch.zeros(shape))
     meas = StereoOutput(m[0], m[2], m[1])
-    keep, restart = torch.tensor([False, True, False]), torch.tensor([False, False, True])
+    keep, restart = torch.tensor([False, True, False, True]), torch.tensor([False, False, True, True])
     regions = torch.rand(shape, generator=g) > 0.5
     fast = _overrule(corrected, pred, meas, keep, restart, regions)
     monkeypatch.setattr(dispatch, "ENABLED", False)
@@ -173,6 +178,7 @@ def test_overrule_numpy_and_torch_agree(monkeypatch):
     for a, b in zip(fast, reference, strict=True):
         assert torch.equal(a, b)
     assert torch.equal(fast[0][1], pred.disparity[1]) and torch.equal(fast[0][2], meas.disparity[2])
+    assert torch.equal(fast[0][3], meas.disparity[3]) and (fast[3][1:] == 0).all()
     take = regions[0]
     assert torch.equal(fast[0][0][take], meas.disparity[0][take]) and (fast[3][0][take] == 0).all()
     assert torch.equal(fast[0][0][~take], corrected[0][0][~take])
