@@ -72,6 +72,15 @@ class StereoOptions:
             the box matcher's accurate, noise-dominated values where it has them and gains SGM's density; the
             stereo frames cost the SGM run more), off in paper mode (the paper's block matching) and with
             ``differentiable=True`` (census is piecewise constant in the images).
+        fill_band: None (the default): the fill searches the full range. An int >= 3: at a verification frame
+            after the first, the fill searches only ``fill_band`` disparities around the predicted one
+            (``egorefine.stereo.band.match_sgm_band``, the fill's matcher without its left-right check), which finds
+            the truth where the prediction is off by up to about ``fill_band / 2 - 1`` px; the first frame, and an
+            item whose ego-motion failed (its prediction is meaningless), get the full-range fill. The first matcher
+            still searches the full range at every verification, so every pixel keeps a full-range measurement: a
+            missing or invalid prediction never yields a stale value. Off by default: without the left-right check
+            the banded fill keeps wrong matches the full one rejects, and the loop's error grows
+            (docs/decisions.md, "A banded fill").
 
     Example:
         >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
@@ -80,6 +89,8 @@ class StereoOptions:
         Traceback (most recent call last):
         ...
         egorefine.core.errors.ValueRangeError: block_size: expected a positive odd integer, got 4
+        >>> StereoOptions().fill_band, StereoOptions(fill_band=16).fill_band  # None: the fill's full range
+        (None, 16)
     """
 
     min_disparity: int = 0
@@ -93,6 +104,7 @@ class StereoOptions:
     speckle_range: float | None = None
     lr_threshold: int | None = None
     fill: bool | None = None
+    fill_band: int | None = None
 
     def __post_init__(self) -> None:
         if int(self.min_disparity) != self.min_disparity or self.min_disparity < 0:
@@ -115,6 +127,9 @@ class StereoOptions:
             raise ValueRangeError(f"lr_threshold: expected an integer >= 0 or None, got {self.lr_threshold}")
         if self.fill is not None and not isinstance(self.fill, bool):
             raise ValueRangeError(f"fill: expected True, False or None, got {self.fill!r}")
+        if self.fill_band is not None and (isinstance(self.fill_band, bool) or int(self.fill_band) != self.fill_band
+                                           or self.fill_band < 3):
+            raise ValueRangeError(f"fill_band: expected an integer >= 3 or None, got {self.fill_band!r}")
 
     @classmethod
     def dense(cls) -> StereoOptions:

@@ -42,6 +42,7 @@ from ..core import (
 from ..features import build_pyramid, replenish, track
 from ..motion import solve_ego_motion
 from ..stereo import StereoOutput, fill_invalid, match_residual, match_stereo, match_stereo_regions
+from ..stereo.band import match_sgm_band
 from ..stereo.matching import _TEMPERATURES
 from ._steps import _confidence, _expected_positions, _overrule, _take_hole_measurements
 from .correct import correct_disparity, edge_variance
@@ -101,12 +102,19 @@ def _net_output(net: nn.Module, x: torch.Tensor, meas: StereoOutput, name: str) 
 
 
 @torch.compiler.disable  # not traced: dynamo would unroll SGM's scanline recursion, which has no gradient anyway
-def _fill_matcher(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int) -> StereoOutput:
+def _fill_matcher(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int,
+                  prior: torch.Tensor | None = None, band: int | None = None) -> StereoOutput:
     """:meth:`StereoOptions.dense`'s matcher on detached float32 copies: census is piecewise constant in the
     images (a zero gradient), so nothing is lost and the compiled CPU kernels may run; outputs in ``left``'s
-    dtype."""
-    out = match_stereo(left.detach().float(), right.detach().float(), max_disparity, min_disparity=min_disparity,
-                       **StereoOptions.dense().matcher_options())
+    dtype. With a ``prior`` and a ``band``, only ``band`` candidates around the prior (``match_sgm_band``, the
+    same matcher less its left-right check); else the full range."""
+    dense = StereoOptions.dense().matcher_options()
+    left, right = left.detach().float(), right.detach().float()
+    if prior is None or band is None:
+        out = match_stereo(left, right, max_disparity, min_disparity=min_disparity, **dense)
+    else:
+        same = {k: dense[k] for k in ("block_size", "subpixel", "speckle_size", "speckle_range") if k in dense}
+        out = match_sgm_band(left, right, prior.detach().float(), max_disparity, min_disparity, width=band, **same)
     return StereoOutput(out.disparity.to(left.dtype), out.valid, out.variance.to(left.dtype))
 
 
@@ -368,19 +376,39 @@ class EgoMotionRefiner(nn.Module):
         return bool(trouble.any())
 
     def _stereo(self, left: torch.Tensor, right: torch.Tensor | None, frame: int,
-                why: str = "verification", corrected: bool = True) -> tuple[StereoOutput, torch.Tensor]:
+                why: str = "verification", corrected: bool = True, prior: torch.Tensor | None = None,
+                prior_ok: torch.Tensor | None = None) -> tuple[StereoOutput, torch.Tensor]:
         """The verification measurement, and the validity of its first matcher alone: the health signal (a
-        swapped or blank pair still gives SGM matches in the fill, but no longer the box matcher's)."""
+        swapped or blank pair still gives SGM matches in the fill, but no longer the box matcher's).
+
+        ``prior``: the prediction ``(B, 1, H, W)``, finite (None on the first frame); the fill of the items where
+        ``prior_ok`` ``(B,)`` holds (their motion is good) searches ``stereo.fill_band`` candidates around it, the
+        others the full range."""
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
         out = match_stereo(left, right, self.max_disparity, min_disparity=self.stereo.min_disparity,
                            **self._matcher())
         matched = out.valid
         if self.stereo.fill:  # the holes of a local matcher filled where census + SGM matches
-            out = fill_invalid(out, _fill_matcher(left, right, self.max_disparity, self.stereo.min_disparity))
+            out = fill_invalid(out, self._fill(left, right, prior, prior_ok))
         if corrected and self.correction_net is not None:
             out = self._corrected(left, out, matched)
         return out, matched
+
+    def _fill(self, left: torch.Tensor, right: torch.Tensor, prior: torch.Tensor | None,
+              prior_ok: torch.Tensor | None) -> StereoOutput:
+        """The fill: banded around ``prior`` for the items where ``prior_ok`` holds, full range for the others."""
+        args = (left, right, self.max_disparity, self.stereo.min_disparity)
+        band = self.stereo.fill_band
+        use = prior is not None and band is not None
+        if not use or bool(prior_ok.all()):
+            return _fill_matcher(*args, prior, band if use else None)
+        if not bool(prior_ok.any()):
+            return _fill_matcher(*args)
+        # (a rare frame: some items' motion failed) each item its own kind of fill
+        banded, full = _fill_matcher(*args, prior, band), _fill_matcher(*args)
+        pick = prior_ok.view(-1, 1, 1, 1)
+        return StereoOutput(*(torch.where(pick, a, b) for a, b in zip(banded, full)))
 
     def measure(self, left: torch.Tensor, right: torch.Tensor) -> tuple[StereoOutput, torch.Tensor]:
         """The verification measurement of one stereo pair before the correction network, and its network input.
@@ -542,7 +570,9 @@ class EgoMotionRefiner(nn.Module):
             # 4. verify against fresh stereo and correct.
             why = "verification" if frame % self.verify_every == 0 else (
                 "the ego-motion failed" if not bool(ok.all()) else "adaptive: low coverage or confidence")
-            meas, matched = self._stereo(grey, right, frame, why)
+            # (the fill searches a band around the prediction where the motion is good; the box matcher the full
+            # range everywhere, so a wrong prediction never yields a stale value)
+            meas, matched = self._stereo(grey, right, frame, why, prior=pred.disparity, prior_ok=ok)
             if frame % self.verify_every != 0:
                 status = status | int(Status.STEREO_FORCED)
             cor = self._correct(grey, pred, meas, state.outlier_count, verification=True, matched=matched)
