@@ -47,6 +47,7 @@ __all__ = ["AVAILABLE", "census_sgm_select", "release_workspace"]
 
 if AVAILABLE:  # numba is a dependency, but the package stays importable (torch path) without it
     from llvmlite import ir as _llvm_ir
+    from numba import literally
     from numba.core import types as _types
     from numba.extending import intrinsic
 
@@ -54,6 +55,8 @@ if AVAILABLE:  # numba is a dependency, but the package stays importable (torch 
 _WORD_BITS = 24
 # the encoded value of an out-of-view candidate in the right-view search: INVALID_COST's float32 bits
 _INVALID_CODE = int(np.array(1.0e6, dtype=np.float32).view(np.int32))
+# rows whose horizontal paths step together (_horizontal_band)
+_BAND_ROWS = 8
 
 
 if AVAILABLE:
@@ -150,164 +153,171 @@ if AVAILABLE:
                         if last:
                             col[j] += row[j]
 
+    def _same_type_op(name, int_op, float_op=None):
+        """An intrinsic ``name(a, b)`` in the type of both operands: LLVM's ``int_op`` (integers wrap, with no
+        promotion to int64, so LLVM keeps 16-bit lanes) or ``float_op``."""
+
+        def typer(typingctx, a, b):
+            if a != b or (float_op is None and not isinstance(a, _types.Integer)):
+                return None
+
+            def codegen(context, builder, signature, args):
+                return getattr(builder, float_op if isinstance(a, _types.Float) else int_op)(*args)
+
+            return a(a, b), codegen
+
+        typer.__name__ = typer.__qualname__ = name
+        return intrinsic(typer)
+
+    _add = _same_type_op("_add", "add", "fadd")
+    _sub = _same_type_op("_sub", "sub", "fsub")
+    _and = _same_type_op("_and", "and_")
+    _or = _same_type_op("_or", "or_")
+
+    @intrinsic
+    def _like(typingctx, x, like):
+        """``x`` converted to the type of ``like`` (an integer to a float exactly as numpy does)."""
+        if not isinstance(x, _types.Integer) or not isinstance(like, (_types.Integer, _types.Float)):
+            return None
+
+        def codegen(context, builder, signature, args):
+            v = args[0]
+            target = context.get_value_type(like)
+            if isinstance(like, _types.Float):
+                return builder.sitofp(v, target)
+            if like.bitwidth > x.bitwidth:
+                return builder.sext(v, target)
+            if like.bitwidth < x.bitwidth:
+                return builder.trunc(v, target)
+            return v
+
+        return like(x, like), codegen
+
+    @intrinsic
+    def _key(typingctx, x):
+        """An integer whose order is that of ``x``: the bits of a non-negative float32, an integer itself."""
+        if x == _types.float32:
+            def codegen(context, builder, signature, args):
+                return builder.bitcast(args[0], _llvm_ir.IntType(32))
+
+            return _types.int32(x), codegen
+        if isinstance(x, _types.Integer):
+            return x(x), lambda context, builder, signature, args: args[0]
+        return None
+
+    @intrinsic
+    def _unkey(typingctx, k, like):
+        """The inverse of _key for the type of ``like``."""
+        def codegen(context, builder, signature, args):
+            if isinstance(like, _types.Float):
+                return builder.bitcast(args[0], _llvm_ir.FloatType())
+            return args[0]
+
+        return like(k, like), codegen
+
     @_jit(inline="always")
     def _min(a, b):
         return a if a < b else b  # torch.minimum without NaNs; a plain select LLVM vectorises
 
     @_jit(inline="always")
-    def _step(prev, pp, c, cp, jlim, m, p1, p2, out, op):
-        """One SGM step (sgm._step) from row ``pp`` of ``prev`` and row ``cp`` of the costs ``c`` into row
-        ``op`` of ``out`` (2-D arrays ``(N, D)``):
-        ``out[j] = (C[j] - m) + min(prev[j], m + P2, prev[j +- 1] + P1)``. Returns ``min_j out[j]``.
+    def _max(a, b):
+        return a if a > b else b
 
-        ``c`` holds the integer window sums; ``C[j] = float32(c[j]) + INVALID_COST`` for ``j < jlim`` (out of
-        view), exactly the float32 value cost.strip_volume computes. Path costs are >= 0, where the int32
-        order of the float bits is the float order: the min is an integer reduction, which LLVM vectorises
-        without fast-math (a float one it would not).
+    @_jit
+    def _run(src, dst, smins, dmins, n, back, c2, p0, pstride, x0, xstride, a2, tbig, tsub, p1, p2, max_d, mode):
+        """``n`` independent SGM steps (sgm._step): item ``i`` goes from row ``i + 1 - back`` of ``src`` to row
+        ``i + 1`` of ``dst``, ``L[j] = (C[j] - m) + min(prev[j], m + P2, prev[j +- 1] + P1)`` in the type ``T`` of
+        the path rows, and ``min_j L[j]`` from ``smins`` to ``dmins`` (the predecessor's ``m``).
+
+        Item ``i`` is pixel ``p0 + i * pstride`` (a row of ``c2``, ``a2``) at column ``x0 + i * xstride``. Path
+        rows (_path_rows) hold ``L[j]`` at column ``j + 1`` between two pad columns that no minimum picks; a zero
+        row (and zero ``m``) starts a path (L = C). ``C[j] = T(c2[p, j]) + tbig[v, j]`` and ``mode`` 1 sets, 2 adds
+        ``L[j] - tsub[v, j]`` to ``a2[p, j]`` (0: neither), where ``v = clip(max_d - 1 - x, 0, D)`` counts the
+        candidates out of view (see _path_arithmetic; tables rather than a select or a loop that starts at ``v``,
+        which LLVM does not vectorise). The min is a reduction over _key, an integer order LLVM vectorises
+        without fast-math (a float one it would not). ``mode`` is a literal: a branch per ``j`` on a run-time
+        value keeps LLVM from vectorising.
         """
-        mp2 = m + p2
-        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: much slower)
-        big = np.float32(1.0e6)
-        zero = np.float32(0.0)
-        c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)
-        v = (c0 - m) + _min(_min(prev[pp, 0], mp2), prev[pp, 1] + p1)
-        out[op, 0] = v
-        lo = _bits_of_float(v)
-        if jlim <= 1:  # no candidate out of view in the loop below: no penalty to add
-            for j in range(1, num - 1):
-                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
-                v = (np.float32(c[cp, j]) - m) + best
-                out[op, j] = v
-                lo = min(lo, _bits_of_float(v))
-        else:
-            for j in range(1, num - 1):
-                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
-                cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-                v = (cj - m) + best
-                out[op, j] = v
-                lo = min(lo, _bits_of_float(v))
-        j = num - 1
-        cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-        v = (cj - m) + _min(_min(prev[pp, j], mp2), prev[pp, j - 1] + p1)
-        out[op, j] = v
-        return _float_from_bits(min(lo, _bits_of_float(v)))
-
-    @_jit(inline="always")
-    def _step_add(prev, pp, c, cp, jlim, m, p1, p2, out, op, acc, ap):
-        """_step, also adding the new path costs to row ``ap`` of ``acc`` (one pass instead of two)."""
-        mp2 = m + p2
-        num = c.shape[1]  # >= 2 (an early return for 1 here makes LLVM give up vectorising: much slower)
-        big = np.float32(1.0e6)
-        zero = np.float32(0.0)
-        c0 = np.float32(c[cp, 0]) + (big if 0 < jlim else zero)
-        v = (c0 - m) + _min(_min(prev[pp, 0], mp2), prev[pp, 1] + p1)
-        out[op, 0] = v
-        acc[ap, 0] += v
-        lo = _bits_of_float(v)
-        if jlim <= 1:  # no candidate out of view in the loop below: no penalty to add
-            for j in range(1, num - 1):
-                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
-                v = (np.float32(c[cp, j]) - m) + best
-                out[op, j] = v
-                acc[ap, j] += v
-                lo = min(lo, _bits_of_float(v))
-        else:
-            for j in range(1, num - 1):
-                best = _min(_min(prev[pp, j], mp2), _min(prev[pp, j - 1] + p1, prev[pp, j + 1] + p1))
-                cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-                v = (cj - m) + best
-                out[op, j] = v
-                acc[ap, j] += v
-                lo = min(lo, _bits_of_float(v))
-        j = num - 1
-        cj = np.float32(c[cp, j]) + (big if j < jlim else zero)
-        v = (cj - m) + _min(_min(prev[pp, j], mp2), prev[pp, j - 1] + p1)
-        out[op, j] = v
-        acc[ap, j] += v
-        return _float_from_bits(min(lo, _bits_of_float(v)))
-
-    @_jit(inline="always")
-    def _start(c, cp, jlim, out, op):
-        """A path's first pixel: ``out = C`` (see _step); returns its min."""
-        for j in range(c.shape[1]):
-            out[op, j] = np.float32(c[cp, j]) + (np.float32(1.0e6) if j < jlim else np.float32(0.0))
-        lo = _bits_of_float(out[op, 0])
-        for j in range(1, c.shape[1]):
-            lo = min(lo, _bits_of_float(out[op, j]))
-        return _float_from_bits(lo)
-
-    @_jit
-    def _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf):
-        """``h2[y]`` = LR + RL (left-to-right plus right-to-left path costs, as sgm_aggregate adds them) of
-        row ``y`` of the integer costs ``c2`` ``(H * W, D)`` (see _step). A path starts with L = C."""
-        base = y * w
-        m = _start(c2, base, max_d - 1, h2, base)
-        for x in range(1, w):  # left to right, straight into h2
-            m = _step(h2, base + x - 1, c2, base + x, max_d - 1 - x, m, p1, p2, h2, base + x)
-        # right to left in a pair of row buffers, added to h2 (LR + RL) in the same pass
-        m = _start(c2, base + w - 1, max_d - w, buf, 0)
-        p = base + w - 1
-        for j in range(c2.shape[1]):
-            h2[p, j] += buf[0, j]
-        k = 0
-        for x in range(w - 2, -1, -1):
-            p = base + x
-            m = _step_add(buf, k, c2, p, max_d - 1 - x, m, p1, p2, buf, 1 - k, h2, p)
-            k = 1 - k
-
-    @_jit
-    def _rows_pass(cl, cr, r, max_d, num, y0, y1, p1, p2, cost, horiz):
-        """Rows ``[y0, y1)``: box sums (block ``2r+1``) of the census Hamming distances into ``cost``
-        ``(H, W, D)`` (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added
-        where they are read, see _step), as cost.strip_volume; then the horizontal path costs of each row
-        (still in cache) into ``horiz``."""
-        _, h, w = cl.shape
-        k = 2 * r + 1
-        wp = w + 2 * r
-        ring = np.empty((k, wp, num), dtype=np.int16)
-        rpad = np.empty(wp + max_d + 1, dtype=np.int32)
-        colsum = np.zeros((wp, num), dtype=cost.dtype)
-        acc = np.empty(num, dtype=cost.dtype)
-        c2 = cost.reshape(h * w, num)
-        h2 = horiz.reshape(h * w, num)
-        buf = np.empty((2, num), dtype=np.float32)
-        for i in range(k):  # rows y0 - r .. y0 + r (clamped)
-            yy = min(max(y0 - r + i, 0), h - 1)
-            _raw_row(cl, cr, yy, r, max_d, num, rpad, ring[i], colsum, 0)
-        slot = 0  # ring slot of row y - r
-        for y in range(y0, y1):
-            if y > y0:  # slide the window: drop row y - r - 1, add row y + r
-                _raw_row(cl, cr, min(max(y + r, 0), h - 1), r, max_d, num, rpad, ring[slot], colsum, 1)
-                slot = (slot + 1) % k
+        literally(mode)
+        num = c2.shape[1]
+        for i in range(n):
+            q = i + 1
+            pp = q - back
+            p = p0 + i * pstride
+            v = min(max(max_d - 1 - (x0 + i * xstride), 0), num)
+            m = smins[pp]
+            mp2 = _add(m, p2)
+            lo = _key(dst[q, 0])  # the pad: above every path cost
             for j in range(num):
-                acc[j] = 0
-            for i in range(k - 1):
-                for j in range(num):
-                    acc[j] += colsum[i, j]
-            for x in range(w):
-                for j in range(num):
-                    acc[j] += colsum[x + k - 1, j]
-                p = y * w + x
-                for j in range(num):
-                    c2[p, j] = acc[j]
-                for j in range(num):
-                    acc[j] -= colsum[x, j]
-            _horizontal_row(c2, max_d, p1, p2, y, w, h2, buf)
+                best = _min(_min(src[pp, j + 1], mp2), _min(_add(src[pp, j], p1), _add(src[pp, j + 2], p1)))
+                cost = _add(_sub(_add(_like(c2[p, j], m), tbig[v, j]), m), best)
+                dst[q, j + 1] = cost
+                if mode == 1:
+                    a2[p, j] = _sub(cost, tsub[v, j])
+                elif mode == 2:
+                    a2[p, j] = _add(a2[p, j], _sub(cost, tsub[v, j]))
+                lo = _min(lo, _key(cost))
+            dmins[q] = _unkey(lo, m)
 
     @_jit
-    def _select_pixel(lo, codes, codef, num, max_d, bits, subpixel, parabola, uniqueness, floor, eps,
-                      min_disparity_positive):
-        """matching._select for one pixel from its encoded costs ``codes`` (int32; ``codef``: the same as float32)
-        and their minimum ``lo``.
+    def _path_rows(rows, num, pad, like):
+        """``rows`` zero path rows (a path start: L = C) of ``num`` candidates between two ``pad`` columns, of
+        ``like``'s dtype."""
+        out = np.zeros((rows, num + 2), dtype=like.dtype)
+        out[:, 0] = pad
+        out[:, num + 1] = pad
+        return out
+
+    @_jit
+    def _horizontal_band(c2, a2, y0, n, w, cols, mins, tbig, tsub, p1, p2, max_d):
+        """Rows ``[y0, y0 + n)`` of ``a2`` ``(H * W, D)`` = LR + RL (left-to-right plus right-to-left path costs, as
+        sgm_aggregate adds them; see _run) of the integer costs ``c2``. The rows step together, column by column
+        (independent steps: the next column's loads need not wait for this one's stores). ``cols``: two path rows
+        (_path_rows) per row of the band, ``(2, n + 2, D + 2)``; ``mins``: ``(2, n + 2)``."""
+        for direction in range(2):
+            cols[0, :, 1:-1] = 0
+            mins[0] = 0
+            k = 0
+            for t in range(w):
+                x = t if direction == 0 else w - 1 - t
+                if direction == 0:
+                    _run(cols[k], cols[1 - k], mins[k], mins[1 - k], n, 0, c2, y0 * w + x, w, x, 0, a2, tbig, tsub,
+                         p1, p2, max_d, 1)
+                else:
+                    _run(cols[k], cols[1 - k], mins[k], mins[1 - k], n, 0, c2, y0 * w + x, w, x, 0, a2, tbig, tsub,
+                         p1, p2, max_d, 2)
+                k = 1 - k
+
+    @_jit
+    def _vertical_row(c2, a2, y, w, x0, x1, rows, mins, k, tbig, tsub, p1, p2, max_d, final):
+        """Row ``y``, columns ``[x0, x1)``, of the vertical (and, with 3 shifts, diagonal) paths of one direction:
+        from ``rows[s, k]`` (the previous row of shift ``s``) to ``rows[s, 1 - k]``, ``(shifts, 2, n + 2, D + 2)``
+        path rows with a zero column (a path start) on either side; ``mins`` ``(shifts, 2, n + 2)`` their minima.
+        The paths are added to ``a2`` (see _run) in sgm_aggregate's order (column shifts 0, +1, -1); with
+        ``final`` the last one is not (_finish_row completes the sum). A diagonal predecessor outside
+        ``[x0, x1)`` starts the path, so diagonals need the full width."""
+        ns = rows.shape[0]
+        for s in range(ns):
+            dx = 0 if s == 0 else (1 if s == 1 else -1)
+            if final and s == ns - 1:
+                _run(rows[s, k], rows[s, 1 - k], mins[s, k], mins[s, 1 - k], x1 - x0, dx, c2, y * w + x0, 1, x0, 1,
+                     a2, tbig, tsub, p1, p2, max_d, 0)
+            else:
+                _run(rows[s, k], rows[s, 1 - k], mins[s, k], mins[s, 1 - k], x1 - x0, dx, c2, y * w + x0, 1, x0, 1,
+                     a2, tbig, tsub, p1, p2, max_d, 2)
+
+    @_jit
+    def _select_pixel(lo, codes, num, max_d, bits, subpixel, parabola, uniqueness, floor, eps, min_disparity_positive):
+        """matching._select for one pixel from its encoded costs ``codes`` (int32) and their minimum ``lo``.
 
         Returns ``(j, disparity, ok, variance)``; ``ok`` without the left-right check.
         """
         j = lo & ((1 << bits) - 1)
         jm = max(j - 1, 0)
         jp = min(j + 1, num - 1)
-        c_best = codef[j]
-        c_plus = codef[jm]  # reversed order: j - 1 is d + 1
-        c_minus = codef[jp]
+        c_best = _float_from_bits(codes[j])
+        c_plus = _float_from_bits(codes[jm])  # reversed order: j - 1 is d + 1
+        c_minus = _float_from_bits(codes[jp])
         half_invalid = np.float32(5.0e5)
         interior = j > 0 and j < num - 1 and c_plus < half_invalid and c_minus < half_invalid
         curvature = (c_minus - np.float32(2.0) * c_best) + c_plus
@@ -339,83 +349,136 @@ if AVAILABLE:
         return j, disparity, ok, variance
 
     @_jit
-    def _vertical_select(cost, p1, p2, x0, x1, diagonals, paths, horiz, store, max_d, bits, subpixel, parabola,
-                         uniqueness, floor, eps, min_disparity_positive, lr_check, max_raw, jbest, disparity, ok,
-                         variance, rmin):
-        """Vertical (and, with ``diagonals``, diagonal) path costs of columns ``[x0, x1)`` added to the horizontal
-        ones ``horiz`` in sgm_aggregate's order (top-down paths into ``horiz``), then the selection of each pixel.
+    def _finish_row(c2, a2, cur, y, w, x0, x1, tsub, tadd, select, vol, jbest, disparity, ok, variance, rmin, codes,
+                    sums):
+        """Pixels ``(y, x)``, ``x`` in ``[x0, x1)``: their aggregated costs ``((a2[p] + (L[j] - tsub)) + tadd) / paths``
+        (``L``: row ``x - x0 + 1`` of ``cur``, the last path; see _run), then their selection (_select_pixel) into
+        ``jbest``, ``disparity``, ``ok``, ``variance``.
 
-        ``store``: write the aggregated costs into ``horiz`` (else it keeps a partial sum).
-        ``max_raw``: a winner whose own (un-aggregated) window cost exceeds it is not ok (negative: no such check).
-        Per pixel: ``jbest``, ``disparity``, ``ok`` (checks but the left-right one), ``variance`` ``(H, W)``;
-        ``rmin`` ``(H, max_d + W)``: this band's part of the right view's encoded minimum at column
-        ``max_d + xr`` (min over bands gives it; the first ``max_d`` columns are spare).
-        A diagonal predecessor outside ``[x0, x1)`` starts the path, so diagonals need the full width.
+        The sum is sgm_aggregate's in float32 (``a2`` then holds float32 path costs, the tables zeros) or, for
+        integer path costs, an integer total converted exactly (``tadd``: ``paths * INVALID_COST`` out of view,
+        which every path of such a candidate has; see _path_arithmetic). With ``store`` the costs go to
+        ``vol[p]``. ``rmin`` ``(H, max_d + W)``: the right view's encoded minimum at column ``max_d + xr`` gains
+        each pixel's candidates (``xr = x - d``; the first ``max_d`` columns are spare, so that no index is
+        negative). ``codes`` (int32), ``sums`` (float32): ``(D,)`` scratch.
         """
+        paths, store, max_d, bits, subpixel, parabola, uniqueness, floor, eps, positive, lr_check, max_raw = select
+        num = codes.shape[0]
+        high = np.int32(-(1 << bits))
+        scale = np.float32(1.0 / paths)  # exact: paths is a power of two, so this is the division by it
+        for i in range(x1 - x0):
+            x = x0 + i
+            p = y * w + x
+            v = min(max(max_d - 1 - x, 0), num)
+            # the aggregated cost, then _encode: clamp_min(0) and the index in the low mantissa bits; the min of
+            # the codes is the winner
+            lo = np.int32(0x7FFFFFFF)
+            for j in range(num):
+                a = ((np.float32(a2[p, j]) + np.float32(_sub(cur[i + 1, j + 1], tsub[v, j]))) + tadd[v, j]) * scale
+                sums[j] = a
+                code = _or(_and(_max(_bits_of_float(a), np.int32(0)), high), _like(j, high))
+                codes[j] = code
+                lo = _min(lo, code)
+            if store:
+                for j in range(num):
+                    vol[p, j] = sums[j]
+            if lr_check:  # the right view's running minimum: right pixel xr = x - d sees candidate j
+                first = np.uint64(x + 1)  # an unsigned index: no wraparound check, which keeps LLVM from vectorising
+                for j in range(num):
+                    col = first + np.uint64(j)
+                    rmin[y, col] = _min(rmin[y, col], codes[j])
+            jb, dsp, good, var = _select_pixel(lo, codes, num, max_d, bits, subpixel, parabola, uniqueness, floor,
+                                               eps, positive)
+            if good and max_raw >= 0:  # (an ok winner is in view: no INVALID_COST in its cost)
+                good = np.float32(c2[p, jb]) <= max_raw
+            jbest[y, x] = jb
+            disparity[y, x] = dsp
+            ok[y, x] = good
+            variance[y, x] = var
+
+    @_jit
+    def _cost_row(cl, cr, y, y0, r, max_d, ring, rpad, colsum, box, c2):
+        """Row ``y`` of the box sums (block ``2r+1``) of the census Hamming distances into ``c2`` ``(H * W, D)``
+        (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added where they are
+        read, see _run), as cost.strip_volume, sliding the window of ``ring`` (raw rows ``y - r .. y + r``) and
+        ``colsum`` (their sum) from row ``y - 1`` (filled anew at ``y == y0``)."""
+        _, h, w = cl.shape
+        k = 2 * r + 1
+        num = c2.shape[1]
+        if y == y0:
+            colsum[:] = 0
+            for i in range(k):  # rows y0 - r .. y0 + r (clamped)
+                _raw_row(cl, cr, min(max(y0 - r + i, 0), h - 1), r, max_d, num, rpad, ring[i], colsum, 0)
+        else:  # slide the window: drop row y - r - 1 (ring slot (y - y0 - 1) % k), add row y + r
+            _raw_row(cl, cr, min(max(y + r, 0), h - 1), r, max_d, num, rpad, ring[(y - y0 - 1) % k], colsum, 1)
+        for j in range(num):
+            box[j] = 0
+        for i in range(k - 1):
+            for j in range(num):
+                box[j] += colsum[i, j]
+        for x in range(w):
+            for j in range(num):
+                box[j] += colsum[x + k - 1, j]
+            p = y * w + x
+            for j in range(num):
+                c2[p, j] = box[j]
+            for j in range(num):
+                box[j] -= colsum[x, j]
+
+    @_jit
+    def _rows_pass(cl, cr, r, y0, y1, band, p1, p2, pad, tbig, tsub, cost, acc, shifts, max_d):
+        """Rows ``[y0, y1)``: the census costs (_cost_row) into ``cost`` and, ``band`` rows at a time (their costs
+        still in cache), their horizontal path costs (_horizontal_band) into ``acc``; with ``shifts > 0`` (the
+        rows are the whole image) also the top-down ones of that many column shifts (_vertical_row)."""
+        _, h, w = cl.shape
+        num = cost.shape[2]
+        k = 2 * r + 1
+        wp = w + 2 * r
+        ring = np.empty((k, wp, num), dtype=np.int16)
+        rpad = np.empty(wp + max_d + 1, dtype=np.int32)
+        colsum = np.zeros((wp, num), dtype=cost.dtype)
+        box = np.empty(num, dtype=cost.dtype)
+        c2 = cost.reshape(h * w, num)
+        a2 = acc.reshape(h * w, num)
+        cols = _path_rows(2 * (band + 2), num, pad, acc).reshape(2, band + 2, num + 2)
+        cmins = np.zeros((2, band + 2), dtype=acc.dtype)
+        rows = _path_rows(max(shifts, 1) * 2 * (w + 2), num, pad, acc).reshape(max(shifts, 1), 2, w + 2, num + 2)
+        mins = np.zeros((max(shifts, 1), 2, w + 2), dtype=acc.dtype)
+        for yb in range(y0, y1, band):
+            n = min(band, y1 - yb)
+            for y in range(yb, yb + n):
+                _cost_row(cl, cr, y, y0, r, max_d, ring, rpad, colsum, box, c2)
+            _horizontal_band(c2, a2, yb, n, w, cols, cmins, tbig, tsub, p1, p2, max_d)
+            if shifts > 0:
+                for y in range(yb, yb + n):
+                    _vertical_row(c2, a2, y, w, 0, w, rows, mins, (y - y0) & 1, tbig, tsub, p1, p2, max_d, False)
+
+    @_jit
+    def _vertical_select(cost, acc, x0, x1, shifts, top_down, p1, p2, pad, tbig, tsub, tadd, select, vol, jbest,
+                         disparity, ok, variance, rmin):
+        """Columns ``[x0, x1)``: with ``top_down`` the top-down paths (``shifts`` column shifts, see _vertical_row)
+        added to ``acc``, then the bottom-up ones with each row's selection as soon as its sums are complete
+        (_finish_row; the right view's minimum is gathered in this band's ``rmin``)."""
         h, w, num = cost.shape
         c2 = cost.reshape(h * w, num)
-        h2 = horiz.reshape(h * w, num)
+        a2 = acc.reshape(h * w, num)
         n = x1 - x0
-        ns = 3 if diagonals else 1  # column shifts 0, +1, -1 per row (sgm_aggregate's order)
-        # previous / current row of each path, (ns * (n + 2), D): one zero column (a path start, L = C)
-        # on either side of each path's row
-        prev = np.zeros((ns * (n + 2), num), dtype=np.float32)
-        cur = np.zeros((ns * (n + 2), num), dtype=np.float32)
-        mins = np.zeros(ns * (n + 2), dtype=np.float32)
-        cmins = np.zeros(ns * (n + 2), dtype=np.float32)
+        rows = _path_rows(shifts * 2 * (n + 2), num, pad, acc).reshape(shifts, 2, n + 2, num + 2)
+        mins = np.zeros((shifts, 2, n + 2), dtype=acc.dtype)
         codes = np.empty(num, dtype=np.int32)
-        codef = codes.view(np.float32)
-        high = np.int32(-(1 << bits))
-        fpaths = np.float32(paths)
-        if lr_check:
-            for y in range(h):
-                for x in range(rmin.shape[1]):
-                    rmin[y, x] = np.int32(0x7FFFFFFF)
-        for direction in range(2):
-            prev[:] = 0.0
-            cur[:] = 0.0
-            mins[:] = 0.0
-            cmins[:] = 0.0
+        sums = np.empty(num, dtype=np.float32)
+        max_d = select[2]
+        if select[10]:  # lr_check
+            rmin[:] = np.int32(0x7FFFFFFF)
+        for direction in range(0 if top_down else 1, 2):
+            rows[:, 0, :, 1 : num + 1] = 0
+            mins[:] = 0
             for t in range(h):
                 y = t if direction == 0 else h - 1 - t
-                for s in range(ns):
-                    dx = 0 if s == 0 else (1 if s == 1 else -1)
-                    last = direction == 1 and s == ns - 1
-                    row = s * (n + 2)
-                    for i in range(n):
-                        src = row + i + 1 - dx  # predecessor column
-                        q = row + i + 1
-                        x = x0 + i
-                        p = y * w + x
-                        if not last:
-                            cmins[q] = _step_add(prev, src, c2, p, max_d - 1 - x, mins[src], p1, p2, cur, q, h2, p)
-                        else:
-                            cmins[q] = _step(prev, src, c2, p, max_d - 1 - x, mins[src], p1, p2, cur, q)
-                            # the aggregated cost, then _encode: clamp_min(0) and the index in the low mantissa
-                            # bits; the min of the codes is the winner
-                            # (and the right view's running minimum: right pixel xr = x - d sees candidate j;
-                            # rmin has max_d spare columns on the left so that no index is negative)
-                            lo = np.int32(0x7FFFFFFF)
-                            rrow = rmin[y, x + 1 :]
-                            for j in range(num):
-                                a = (h2[p, j] + cur[q, j]) / fpaths
-                                if store:
-                                    h2[p, j] = a
-                                code = (max(_bits_of_float(a), np.int32(0)) & high) | np.int32(j)
-                                codes[j] = code
-                                lo = min(lo, code)
-                                if lr_check:
-                                    rrow[j] = min(rrow[j], code)
-                            jb, dsp, good, var = _select_pixel(lo, codes, codef, num, max_d, bits, subpixel, parabola,
-                                                               uniqueness, floor, eps, min_disparity_positive)
-                            if good and max_raw >= 0:  # (an ok winner is in view: no INVALID_COST in its cost)
-                                good = np.float32(c2[p, jb]) <= max_raw
-                            jbest[y, x] = jb
-                            disparity[y, x] = dsp
-                            ok[y, x] = good
-                            variance[y, x] = var
-                prev, cur = cur, prev
-                mins, cmins = cmins, mins
+                _vertical_row(c2, a2, y, w, x0, x1, rows, mins, t & 1, tbig, tsub, p1, p2, max_d, direction == 1)
+                if direction == 1:
+                    _finish_row(c2, a2, rows[shifts - 1, 1 - (t & 1)], y, w, x0, x1, tsub, tadd, select, vol, jbest,
+                                disparity, ok, variance, rmin, codes, sums)
 
     @_jit
     def _lr_check_rows(rmins, jbest, ok, max_d, bits, lr_threshold, y0, y1):
@@ -444,6 +507,23 @@ def _max_raw(opts: dict) -> np.float32:
     """The raw-cost check's bound in window-sum units as matching._select computes it (-1: off)."""
     limit = opts.get("max_raw_cost")
     return np.float32(-1.0) if limit is None else np.float32(limit)
+
+
+def _path_arithmetic(cost_max: int, p1: np.float32, p2: np.float32, paths: int) -> tuple:
+    """``(T, big, sub, add)``: the type ``T`` of the path costs and their out-of-view terms (see _step, _finish_pixel).
+
+    int16 where that is exact: integer penalties, and every value in range. A path cost is ``L = L' + INVALID_COST``
+    out of view, ``L' <= cost + P2``; int16 holds ``L' + big`` with ``big = cost_max + 2 P2 + 1``, which never wins a
+    minimum against a candidate in view, as INVALID_COST does not, and cancels where every candidate is out of
+    view (in ``C - m``), as INVALID_COST does. The sums keep ``L'`` (``sub = big``) and get ``paths * INVALID_COST``
+    back in float32 (``add``), exactly: every value is an integer below 2**24. Otherwise float32 with
+    ``big = INVALID_COST`` (the torch path's operations)."""
+    big = cost_max + 2 * int(p2) + 1
+    integral = p1 >= 0 and p2 >= 0 and p1 == int(p1) and p2 == int(p2)
+    if integral and big + cost_max + int(p2) + int(max(p1, p2)) < 1 << 15 and \
+            (paths - 1) * (cost_max + int(p2)) < 1 << 15 and paths * (1.0e6 + cost_max + p2) < 1 << 24:
+        return np.int16, np.int16(big), np.int16(big), np.float32(paths * 1.0e6)
+    return np.float32, np.float32(1.0e6), np.float32(0.0), np.float32(0.0)
 
 
 _workspace = threading.local()
@@ -512,14 +592,26 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     valid = np.empty((b, h, w), dtype=np.bool_)
     variance = np.empty((b, h, w), dtype=np.float32)
     words = -(-(census_window * census_window - 1) // _WORD_BITS)
+    cost_max = block_size * block_size * (census_window * census_window - 1)
     # window sums of census distances: int16 while they fit (half the memory traffic of float32)
-    cost_dtype = np.int16 if block_size * block_size * (census_window * census_window - 1) < 1 << 15 else np.int32
-    f1, f2 = np.float32(p1), np.float32(p2)
-    select = (max_disparity, max(1, (num - 1).bit_length()), opts["subpixel"], opts["subpixel_fit"] == "parabola",
-              float(opts["uniqueness_ratio"]), np.float32(opts["cost_floor"] * opts["scale"]),
+    cost_dtype = np.int16 if cost_max < 1 << 15 else np.int32
+    path_dtype, big, sub, add = _path_arithmetic(cost_max, np.float32(p1), np.float32(p2), paths)
+    f1, f2 = path_dtype(p1), path_dtype(p2)
+    # pad columns of the path rows: no minimum picks them, and adding P1 stays in range
+    path_pad = path_dtype(np.inf) if path_dtype == np.float32 else path_dtype((1 << 15) - 1 - f1)
+    # the out-of-view terms by the number v of candidates out of view (row v: v entries, then zeros; see _run)
+    out_of_view = np.tri(num + 1, num, -1, dtype=np.bool_)
+    tables = (np.where(out_of_view, big, 0).astype(path_dtype), np.where(out_of_view, sub, 0).astype(path_dtype),
+              np.where(out_of_view, add, 0).astype(np.float32))
+    select = (paths, return_volume, max_disparity, max(1, (num - 1).bit_length()), opts["subpixel"],
+              opts["subpixel_fit"] == "parabola", float(opts["uniqueness_ratio"]),
+              np.float32(opts["cost_floor"] * opts["scale"]),
               np.float32(torch.finfo(torch.float32).eps * 16 * opts["scale"]), opts["min_disparity"] > 0,
               bool(opts["lr_check"]), _max_raw(opts))
+    shifts = 3 if paths == 8 else 1  # column shifts of the vertical paths
     row_bands = _bands(h, threads)
+    # one row band: its pass also runs the top-down paths (row by row, the costs still in cache)
+    fused = len(row_bands) == 1
     # vertical paths are independent per column; diagonal ones cross columns: one band
     col_bands = _bands(w, threads) if paths == 4 else [(0, w)]
     volumes = []
@@ -529,20 +621,21 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         pad = census_window // 2
         run(lambda k: _census(np.pad((left, right)[k][i, 0], pad, mode="edge"), census_window, census[k]), (0, 1))
         cost = _volume("cost", (h, w, num), cost_dtype)
+        acc = _volume("sums", (h, w, num), path_dtype)
         # a volume returned to the caller stays its own (each batch item's is kept until the end)
-        horiz = np.empty((h, w, num), np.float32) if return_volume else _volume("sums", (h, w, num), np.float32)
-        run(lambda band: _rows_pass(census[0], census[1], block_size // 2, max_disparity, num, band[0], band[1],
-                                    f1, f2, cost, horiz), row_bands)
+        vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)
         rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
-        run(lambda k: _vertical_select(cost, f1, f2, col_bands[k][0], col_bands[k][1], paths == 8, paths, horiz,
-                                       return_volume, *select, jbest, disparity[i], valid[i], variance[i], rmins[k]),
-            range(len(col_bands)))
+        run(lambda rows: _rows_pass(census[0], census[1], block_size // 2, rows[0], rows[1], _BAND_ROWS, f1, f2,
+                                    path_pad, *tables[:2], cost, acc, shifts if fused else 0, max_disparity), row_bands)
+        run(lambda k: _vertical_select(cost, acc, col_bands[k][0], col_bands[k][1], shifts, not fused, f1, f2,
+                                       path_pad, *tables, select, vol, jbest, disparity[i], valid[i], variance[i],
+                                       rmins[k]), range(len(col_bands)))
         if return_volume:
-            volumes.append(torch.from_numpy(horiz).permute(2, 0, 1))
+            volumes.append(torch.from_numpy(vol.reshape(h, w, num)).permute(2, 0, 1))
         if opts["lr_check"]:
-            run(lambda band: _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[1], opts["lr_threshold"],
-                                            band[0], band[1]), row_bands)
+            run(lambda rows: _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[3], opts["lr_threshold"],
+                                            rows[0], rows[1]), row_bands)
 
     workers = Workers(threads)
     for i in range(b):
