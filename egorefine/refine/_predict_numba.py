@@ -174,57 +174,53 @@ if AVAILABLE:
                 vrow[x] = keep
                 crow[x] = crow[x] if keep else _F(0.0)
 
+    @_jit(inline="always")
+    def _larger(a, b):
+        """``max(a, b)`` as a select (numba's ``max`` of floats stays scalar code)."""
+        return b if b > a else a
+
+    @_jit(inline="always")
+    def _smaller(a, b):
+        """``min(a, b)`` as a select."""
+        return b if b < a else a
+
     @_jit
     def _edge_variance(d, valid, radius, y0, y1, base, has_base, out):
         """Rows ``y0:y1`` of :func:`egorefine.refine.correct.edge_variance` for one batch item: ``(r / 2)^2`` with
         ``r`` the spread of the valid disparities in the window (clipped at the borders), 0 where invalid, plus
-        ``base`` where ``has_base``. Window
-        maxima and minima separably, rows then columns, each as a few passes over shifted slices (SIMD)."""
+        ``base`` where ``has_base``. Per row, two kinds of SIMD loop: the column extremes over rows ``y - radius ..
+        y + radius``, then across columns ``x - radius .. x + radius`` from a buffer whose margins hold the values
+        of invalid pixels (which change no extreme: the clipped window)."""
         H, W = d.shape
-        lo_row, hi_row = max(0, y0 - radius), min(H, y1 + radius)
-        n = hi_row - lo_row
-        row_max = np.empty((n, W), np.float32)
-        row_min = np.empty((n, W), np.float32)
-        v_max = np.empty(W, np.float32)
-        v_min = np.empty(W, np.float32)
-        for j in range(n):
-            y = lo_row + j
+        col_max = np.full(W + 2 * radius, -_BIG, np.float32)
+        col_min = np.full(W + 2 * radius, _BIG, np.float32)
+        c_max, c_min = col_max[radius:radius + W], col_min[radius:radius + W]
+        w_max, w_min = np.empty(W, np.float32), np.empty(W, np.float32)
+        for y in range(y0, y1):
             drow, vrow = d[y], valid[y]
             for x in range(W):
-                ok = vrow[x]
-                v_max[x] = drow[x] if ok else -_BIG
-                v_min[x] = drow[x] if ok else _BIG
-            a, b = row_max[j], row_min[j]
-            for x in range(W):
-                a[x] = v_max[x]
-                b[x] = v_min[x]
-            for s in range(1, min(radius, W - 1) + 1):  # the neighbours s columns right, then s columns left
-                a_l, m_r, b_l, n_r = a[: W - s], v_max[s:], b[: W - s], v_min[s:]
-                for x in range(W - s):
-                    a_l[x] = max(a_l[x], m_r[x])
-                    b_l[x] = min(b_l[x], n_r[x])
-                a_r, m_l, b_r, n_l = a[s:], v_max[: W - s], b[s:], v_min[: W - s]
-                for x in range(W - s):
-                    a_r[x] = max(a_r[x], m_l[x])
-                    b_r[x] = min(b_r[x], n_l[x])
-        for y in range(y0, y1):
-            for x in range(W):
-                v_max[x] = row_max[y - lo_row, x]
-                v_min[x] = row_min[y - lo_row, x]
+                c_max[x] = drow[x] if vrow[x] else -_BIG
+                c_min[x] = drow[x] if vrow[x] else _BIG
             for k in range(max(0, y - radius), min(H, y + radius + 1)):
-                m_k, n_k = row_max[k - lo_row], row_min[k - lo_row]
+                dk, vk = d[k], valid[k]
                 for x in range(W):
-                    v_max[x] = max(v_max[x], m_k[x])
-                    v_min[x] = min(v_min[x], n_k[x])
-            vrow, orow = valid[y], out[y]
+                    c_max[x] = _larger(c_max[x], dk[x] if vk[x] else -_BIG)
+                    c_min[x] = _smaller(c_min[x], dk[x] if vk[x] else _BIG)
             for x in range(W):
-                spread = max(v_max[x] - v_min[x], _F(0.0)) if vrow[x] else _F(0.0)
-                orow[x] = spread * spread * _F(0.25)
-            if has_base:
-                brow = base[y]
+                w_max[x] = c_max[x]
+                w_min[x] = c_min[x]
+            for s in range(1, radius + 1):  # the columns s to the left and s to the right
+                l_max, r_max = col_max[radius - s:radius - s + W], col_max[radius + s:radius + s + W]
+                l_min, r_min = col_min[radius - s:radius - s + W], col_min[radius + s:radius + s + W]
                 for x in range(W):
-                    orow[x] = brow[x] + orow[x]
-
+                    w_max[x] = _larger(_larger(w_max[x], l_max[x]), r_max[x])
+                    w_min[x] = _smaller(_smaller(w_min[x], l_min[x]), r_min[x])
+            brow, orow = base[y], out[y]
+            for x in range(W):
+                spread = w_max[x] - w_min[x]
+                spread = spread if (vrow[x] & (spread > _F(0.0))) else _F(0.0)
+                term = spread * spread * _F(0.25)
+                orow[x] = brow[x] + term if has_base else term
 
     @_jit
     def _expected(kp, disp, valid, M, K, baseline, out):
