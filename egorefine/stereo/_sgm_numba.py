@@ -6,27 +6,31 @@ census cost volume, its box aggregation, the 4 or 8 path costs and the winner se
 loops compiled by numba, run in nogil kernels over row or column bands from a thread pool
 (not numba's ``parallel=True``, whose threading layer can clash with torch's OpenMP).
 
-The kernels repeat the torch path's float32 operations one for one, in the same order, so
-their results equal it bit for bit: census costs are integer window sums (exact in float32,
-stored as int16), each recursion step is ``(C - m) + min(prev, m + P2, prev[d +- 1] + P1)`` as
+The kernels give the torch path's results bit for bit: census costs are integer window sums
+(exact in float32), each recursion step is ``(C - m) + min(prev, m + P2, prev[d +- 1] + P1)`` as
 in :func:`egorefine.stereo.sgm._step`, the path costs are summed in the order of
 :func:`~egorefine.stereo.sgm.sgm_aggregate` (horizontal pair first, then top-down, then
 bottom-up), and the selection repeats :func:`egorefine.stereo.matching._select` including its
-index-in-mantissa encoding (so ties resolve the same way). Layout is ``(H, W, D)`` with the
-disparity axis innermost (contiguous, so LLVM vectorises the loops over it) and reversed as in
-:mod:`egorefine.stereo.cost` (index ``j`` is disparity ``max_disparity - 1 - j``).
+index-in-mantissa encoding (so ties resolve the same way). With integer penalties (match_stereo's
+census defaults) every float32 value there is an integer below 2**24, so integer arithmetic gives
+the same values: the path costs are then int16 (16 SIMD lanes, half the memory of float32), with the
+out-of-view INVALID_COST kept apart (see _path_arithmetic); otherwise they are float32 with the torch
+path's operations one for one. Layout is ``(H, W, D)`` with the disparity axis innermost
+(contiguous, so LLVM vectorises the loops over it) and reversed as in :mod:`egorefine.stereo.cost`
+(index ``j`` is disparity ``max_disparity - 1 - j``).
 
 Phases per batch item (each split over ``threads`` bands, a barrier between them):
-census of both images; per row band, the cost rows and their horizontal paths (the row still
-in cache) into a float32 volume; per column band, the top-down paths added to it, then the
-bottom-up ones with each pixel's winner selection as soon as its sum is complete (the
-right view's minimum is gathered per band on the way); per row band, the left-right check.
-Diagonal paths (8 paths) cross column bands, so their vertical phase is one band.
-Compiled with ``cache=True``: the first call on a machine compiles for a few seconds.
+census of both images (one byte per 8 neighbours); per row band, the cost rows and, a few rows at
+a time (their costs still in cache), their horizontal paths, and with one band (one thread) also
+the top-down paths; per column band, the top-down paths (if not done yet), then the bottom-up
+ones with each row's winner selection as soon as its sums are complete (the right view's minimum
+is gathered per band on the way); per row band, the left-right check. Diagonal paths (8 paths)
+cross column bands, so their vertical phase is one band. Compiled with ``cache=True``: the first
+call on a machine compiles for several seconds.
 
-The two volumes (``H W D`` int16 costs and float32 path sums, about 6 bytes per candidate) are kept
-per calling thread and reused by the next call of the same size, as OpenCV's SGBM keeps its buffer:
-faulting in fresh pages for them on every call costs a sizeable share of the call (docs/decisions.md).
+The two volumes (``H W D`` int16 costs and the path sums, int16 or float32) are kept per calling
+thread and reused by the next call of the same size, as OpenCV's SGBM keeps its buffer: faulting in
+fresh pages for them on every call costs a sizeable share of the call (docs/decisions.md).
 :func:`release_workspace` frees them.
 
 ``AVAILABLE`` is False when numba cannot be imported; callers then use the torch path.
@@ -51,8 +55,6 @@ if AVAILABLE:  # numba is a dependency, but the package stays importable (torch 
     from numba.core import types as _types
     from numba.extending import intrinsic
 
-# census bits per int32 word (window 7 has 48 bits: two words)
-_WORD_BITS = 24
 # the encoded value of an out-of-view candidate in the right-view search: INVALID_COST's float32 bits
 _INVALID_CODE = int(np.array(1.0e6, dtype=np.float32).view(np.int32))
 # rows whose horizontal paths step together (_horizontal_band)
@@ -101,57 +103,51 @@ if AVAILABLE:
 
     @_jit
     def _census(padded, window, out):
-        """Census words ``out`` ``(words, H, W)`` int32 of an image replicate-padded by ``window // 2``
-        (``padded``); bit ``k`` (word ``k // 24``) as census_transform: neighbour ``k`` darker than the centre."""
-        words, h, w = out.shape
+        """Census bytes ``out`` ``(planes, H, W)`` uint8 of an image replicate-padded by ``window // 2``
+        (``padded``): bit ``b`` of plane ``i`` is 1 where neighbour ``8 i + b`` (census_transform's order: row by
+        row, the centre left out) is darker than the centre; bits past the last neighbour are 0. (Which bit holds
+        which neighbour does not change a Hamming distance.) ``window`` is a literal: the loop over a byte's bits
+        unrolls, and the one over the row becomes SIMD code."""
+        literally(window)
+        planes, h, w = out.shape
         r = window // 2
+        centre = r * window + r
         for y in range(h):
-            for word in range(words):
+            for plane in range(planes):
                 for x in range(w):
-                    out[word, y, x] = 0
-            k = 0
-            for dy in range(window):
-                for dx in range(window):
-                    if dy == r and dx == r:
-                        continue
-                    word, bit = k // 24, np.int32(k % 24)
-                    for x in range(w):  # branch-free, vectorised along the row
-                        out[word, y, x] |= np.int32(padded[y + dy, x + dx] < padded[y + r, x + r]) << bit
-                    k += 1
+                    c = padded[y + r, x + r]
+                    acc = 0
+                    for b in range(8):
+                        k = plane * 8 + b
+                        k = centre if k >= window * window - 1 else (k + 1 if k >= centre else k)  # centre: bit 0
+                        acc |= np.int32(padded[y + k // window, x + k % window] < c) << b
+                    out[plane, y, x] = np.uint8(acc)
 
     @_jit
-    def _raw_row(cl, cr, yy, r, max_d, num, rpad, out, colsum, sign):
-        """Hamming distances ``out[x', j]`` of (clamped) image row ``yy``, padded columns ``x' in [0, W + 2r)``;
-        ``colsum`` gains them and loses ``sign *`` the previous content of ``out`` (the row leaving the window).
+    def _raw_row(cl, cr, yy, r, max_d, planes, rpad, ring, slot, colsum, leaving):
+        """Hamming distances of (clamped) image row ``yy`` into ``ring[slot]`` ``(W + 2r, D)`` uint8, padded columns
+        ``x' in [0, W + 2r)``; ``colsum`` gains them and, where ``leaving`` (0xFF, else 0), loses the previous
+        content of ``ring[slot]`` (the row leaving the window).
 
         As cost.strip_volume: left column ``x' - r``, right column ``x' + 1 + j`` of the right row padded
-        (replicated) by ``r + max_d`` on the left (``rpad``: scratch of ``W + 2r + max_d + 1``).
+        (replicated) by ``r + max_d`` on the left (``rpad``: ``(planes, W + 2r + max_d + 1)`` scratch). ``planes``
+        (census bytes per pixel) is a literal: the loop over them unrolls inside the SIMD loop over ``j``.
         """
-        words, _, w = cl.shape
-        wp = w + 2 * r
-        for k in range(words):
-            for t in range(rpad.shape[0]):
-                rpad[t] = cr[k, yy, min(max(t - r - max_d, 0), w - 1)]
-            last = k == words - 1
-            for x in range(wp):
-                lv = cl[k, yy, min(max(x - r, 0), w - 1)]
-                row = out[x]
-                col = colsum[x]
-                if k == 0 and last:  # one word: distance, window update and store in one pass
-                    for j in range(num):
-                        new = np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
-                        col[j] += new - sign * row[j]
-                        row[j] = new
-                elif k == 0:
-                    for j in range(num):
-                        col[j] -= sign * row[j]
-                        row[j] = np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
-                else:
-                    for j in range(num):
-                        new = np.int16(_ctpop(lv ^ rpad[x + 1 + j]))
-                        row[j] += new
-                        if last:
-                            col[j] += row[j]
+        literally(planes)
+        _, _, w = cl.shape
+        num = colsum.shape[1]
+        for i in range(planes):
+            for t in range(rpad.shape[1]):
+                rpad[i, t] = cr[i, yy, min(max(t - r - max_d, 0), w - 1)]
+        for x in range(w + 2 * r):
+            xl = min(max(x - r, 0), w - 1)
+            for j in range(num):
+                d = np.uint8(0)
+                for i in range(planes):
+                    d = _add(d, _ctpop(_xor(cl[i, yy, xl], rpad[i, x + 1 + j])))
+                colsum[x, j] = _add(_sub(colsum[x, j], _like(_and(ring[slot, x, j], leaving), colsum[x, j])),
+                                    _like(d, colsum[x, j]))
+                ring[slot, x, j] = d
 
     def _same_type_op(name, int_op, float_op=None):
         """An intrinsic ``name(a, b)`` in the type of both operands: LLVM's ``int_op`` (integers wrap, with no
@@ -172,11 +168,13 @@ if AVAILABLE:
     _add = _same_type_op("_add", "add", "fadd")
     _sub = _same_type_op("_sub", "sub", "fsub")
     _and = _same_type_op("_and", "and_")
+    _xor = _same_type_op("_xor", "xor")
     _or = _same_type_op("_or", "or_")
 
     @intrinsic
     def _like(typingctx, x, like):
-        """``x`` converted to the type of ``like`` (an integer to a float exactly as numpy does)."""
+        """``x`` converted to the type of ``like`` (an integer to a float exactly as numpy does; unsigned ones
+        extended with zeros)."""
         if not isinstance(x, _types.Integer) or not isinstance(like, (_types.Integer, _types.Float)):
             return None
 
@@ -184,9 +182,9 @@ if AVAILABLE:
             v = args[0]
             target = context.get_value_type(like)
             if isinstance(like, _types.Float):
-                return builder.sitofp(v, target)
+                return (builder.sitofp if x.signed else builder.uitofp)(v, target)
             if like.bitwidth > x.bitwidth:
-                return builder.sext(v, target)
+                return (builder.sext if x.signed else builder.zext)(v, target)
             if like.bitwidth < x.bitwidth:
                 return builder.trunc(v, target)
             return v
@@ -397,46 +395,67 @@ if AVAILABLE:
             variance[y, x] = var
 
     @_jit
-    def _cost_row(cl, cr, y, y0, r, max_d, ring, rpad, colsum, box, c2):
+    def _raw_row_of(cl, cr, yy, r, max_d, planes, rpad, ring, slot, colsum, leaving):
+        """_raw_row with ``planes`` (1, 3 or 6: census windows 3, 5, 7) as the literal it takes."""
+        if planes == 1:
+            _raw_row(cl, cr, yy, r, max_d, 1, rpad, ring, slot, colsum, leaving)
+        elif planes == 3:
+            _raw_row(cl, cr, yy, r, max_d, 3, rpad, ring, slot, colsum, leaving)
+        else:
+            _raw_row(cl, cr, yy, r, max_d, 6, rpad, ring, slot, colsum, leaving)
+
+    @_jit
+    def _census_of(padded, window, out):
+        """_census with ``window`` (3, 5 or 7) as the literal it takes."""
+        if window == 3:
+            _census(padded, 3, out)
+        elif window == 5:
+            _census(padded, 5, out)
+        else:
+            _census(padded, 7, out)
+
+    @_jit
+    def _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2):
         """Row ``y`` of the box sums (block ``2r+1``) of the census Hamming distances into ``c2`` ``(H * W, D)``
         (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added where they are
         read, see _run), as cost.strip_volume, sliding the window of ``ring`` (raw rows ``y - r .. y + r``) and
-        ``colsum`` (their sum) from row ``y - 1`` (filled anew at ``y == y0``)."""
+        ``colsum`` (their sum: uint8 where it fits, else int16) from row ``y - 1`` (filled anew at ``y == y0``)."""
         _, h, w = cl.shape
         k = 2 * r + 1
         num = c2.shape[1]
         if y == y0:
             colsum[:] = 0
             for i in range(k):  # rows y0 - r .. y0 + r (clamped)
-                _raw_row(cl, cr, min(max(y0 - r + i, 0), h - 1), r, max_d, num, rpad, ring[i], colsum, 0)
+                yy = min(max(y0 - r + i, 0), h - 1)
+                _raw_row_of(cl, cr, yy, r, max_d, planes, rpad, ring, i, colsum, np.uint8(0))
         else:  # slide the window: drop row y - r - 1 (ring slot (y - y0 - 1) % k), add row y + r
-            _raw_row(cl, cr, min(max(y + r, 0), h - 1), r, max_d, num, rpad, ring[(y - y0 - 1) % k], colsum, 1)
-        for j in range(num):
-            box[j] = 0
+            _raw_row_of(cl, cr, min(max(y + r, 0), h - 1), r, max_d, planes, rpad, ring, (y - y0 - 1) % k, colsum,
+                        np.uint8(0xFF))
+        box[:] = 0
         for i in range(k - 1):
             for j in range(num):
-                box[j] += colsum[i, j]
+                box[j] = _add(box[j], _like(colsum[i, j], box[j]))
         for x in range(w):
-            for j in range(num):
-                box[j] += colsum[x + k - 1, j]
             p = y * w + x
             for j in range(num):
-                c2[p, j] = box[j]
-            for j in range(num):
-                box[j] -= colsum[x, j]
+                b = _add(box[j], _like(colsum[x + k - 1, j], box[j]))
+                c2[p, j] = b
+                box[j] = _sub(b, _like(colsum[x, j], box[j]))
 
     @_jit
-    def _rows_pass(cl, cr, r, y0, y1, band, p1, p2, pad, tbig, tsub, cost, acc, shifts, max_d):
-        """Rows ``[y0, y1)``: the census costs (_cost_row) into ``cost`` and, ``band`` rows at a time (their costs
+    def _rows_pass(cl, cr, planes, r, y0, y1, band, p1, p2, pad, tbig, tsub, cost, acc, colsum_like, shifts,
+                   max_d):
+        """Rows ``[y0, y1)``: the census costs (_cost_row; ``colsum_like``: the dtype of its column sums) into ``cost``
+        and, ``band`` rows at a time (their costs
         still in cache), their horizontal path costs (_horizontal_band) into ``acc``; with ``shifts > 0`` (the
         rows are the whole image) also the top-down ones of that many column shifts (_vertical_row)."""
         _, h, w = cl.shape
         num = cost.shape[2]
         k = 2 * r + 1
         wp = w + 2 * r
-        ring = np.empty((k, wp, num), dtype=np.int16)
-        rpad = np.empty(wp + max_d + 1, dtype=np.int32)
-        colsum = np.zeros((wp, num), dtype=cost.dtype)
+        ring = np.empty((k, wp, num), dtype=np.uint8)
+        rpad = np.empty((planes, wp + max_d + 1), dtype=np.uint8)
+        colsum = np.empty((wp, num), dtype=colsum_like.dtype)
         box = np.empty(num, dtype=cost.dtype)
         c2 = cost.reshape(h * w, num)
         a2 = acc.reshape(h * w, num)
@@ -447,7 +466,7 @@ if AVAILABLE:
         for yb in range(y0, y1, band):
             n = min(band, y1 - yb)
             for y in range(yb, yb + n):
-                _cost_row(cl, cr, y, y0, r, max_d, ring, rpad, colsum, box, c2)
+                _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2)
             _horizontal_band(c2, a2, yb, n, w, cols, cmins, tbig, tsub, p1, p2, max_d)
             if shifts > 0:
                 for y in range(yb, yb + n):
@@ -545,7 +564,7 @@ def release_workspace() -> None:
     """Free the work volumes that the compiled census + SGM path keeps for the calling thread.
 
     Public as :func:`egorefine.stereo.release_sgm_workspace`. :func:`~egorefine.stereo.match_stereo` with
-    ``cost="census", aggregation="sgm"`` on float32 CPU images keeps its two volumes (about 6 bytes per pixel and
+    ``cost="census", aggregation="sgm"`` on float32 CPU images keeps its two volumes (4 to 6 bytes per pixel and
     candidate disparity) for the next call of the same size; call this when a thread is done matching, to hand
     the memory back. The next call allocates them anew.
 
@@ -567,7 +586,8 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     """Census cost, box sum, SGM aggregation and winner selection of float32 CPU grey pairs.
 
     Equal to ``_select(sgm_aggregate(strip_volume(...)))`` of :mod:`egorefine.stereo.matching` (the torch
-    path), bit for bit. Memory: one int16 cost volume and one float32 volume (about 6 bytes per candidate).
+    path), bit for bit. Memory: one int16 cost volume and one int16 or float32 volume of path sums (4 or 6 bytes
+    per candidate; int16 with integer penalties, see _path_arithmetic).
 
     Args:
         grey_l, grey_r: ``(B, 1, H, W)`` float32 CPU grey images.
@@ -591,10 +611,12 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     disparity = np.empty((b, h, w), dtype=np.float32)
     valid = np.empty((b, h, w), dtype=np.bool_)
     variance = np.empty((b, h, w), dtype=np.float32)
-    words = -(-(census_window * census_window - 1) // _WORD_BITS)
+    planes = -(-(census_window * census_window - 1) // 8)  # census bytes per pixel
     cost_max = block_size * block_size * (census_window * census_window - 1)
     # window sums of census distances: int16 while they fit (half the memory traffic of float32)
     cost_dtype = np.int16 if cost_max < 1 << 15 else np.int32
+    # the cost pass's column sums of census distances: uint8 where they fit
+    colsum_like = np.empty(0, np.uint8 if block_size * (census_window * census_window - 1) < 1 << 8 else cost_dtype)
     path_dtype, big, sub, add = _path_arithmetic(cost_max, np.float32(p1), np.float32(p2), paths)
     f1, f2 = path_dtype(p1), path_dtype(p2)
     # pad columns of the path rows: no minimum picks them, and adding P1 stays in range
@@ -617,17 +639,18 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     volumes = []
 
     def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
-        census = np.empty((2, words, h, w), dtype=np.int32)
+        census = np.empty((2, planes, h, w), dtype=np.uint8)
         pad = census_window // 2
-        run(lambda k: _census(np.pad((left, right)[k][i, 0], pad, mode="edge"), census_window, census[k]), (0, 1))
+        run(lambda k: _census_of(np.pad((left, right)[k][i, 0], pad, mode="edge"), census_window, census[k]), (0, 1))
         cost = _volume("cost", (h, w, num), cost_dtype)
         acc = _volume("sums", (h, w, num), path_dtype)
         # a volume returned to the caller stays its own (each batch item's is kept until the end)
         vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)
         rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
-        run(lambda rows: _rows_pass(census[0], census[1], block_size // 2, rows[0], rows[1], _BAND_ROWS, f1, f2,
-                                    path_pad, *tables[:2], cost, acc, shifts if fused else 0, max_disparity), row_bands)
+        run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], _BAND_ROWS, f1,
+                                    f2, path_pad, *tables[:2], cost, acc, colsum_like, shifts if fused else 0,
+                                    max_disparity), row_bands)
         run(lambda k: _vertical_select(cost, acc, col_bands[k][0], col_bands[k][1], shifts, not fused, f1, f2,
                                        path_pad, *tables, select, vol, jbest, disparity[i], valid[i], variance[i],
                                        rmins[k]), range(len(col_bands)))
