@@ -81,6 +81,12 @@ class StereoOptions:
             missing or invalid prediction never yields a stale value. Off by default: without the left-right check
             the banded fill keeps wrong matches the full one rejects, and the loop's error grows
             (docs/decisions.md, "A banded fill").
+        fill_margin: at a verification frame after the first, the full-range fill searches disparities only up to
+            the prediction's largest value plus ``fill_margin`` px (the count rounded up to a multiple of 32, which
+            the compiled kernel runs fastest), not up to ``max_disparity``: nothing in view is nearer than the
+            prediction says but what entered since the last verification, and the first matcher still searches
+            the full range for it. The first frame, a frame where some item's ego-motion failed and a band fill
+            (``fill_band``) search the full range. None: always the full range.
 
     Example:
         >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
@@ -91,6 +97,8 @@ class StereoOptions:
         egorefine.core.errors.ValueRangeError: block_size: expected a positive odd integer, got 4
         >>> StereoOptions().fill_band, StereoOptions(fill_band=16).fill_band  # None: the fill's full range
         (None, 16)
+        >>> StereoOptions().fill_margin, StereoOptions(fill_margin=None).fill_margin
+        (8, None)
     """
 
     min_disparity: int = 0
@@ -105,6 +113,7 @@ class StereoOptions:
     lr_threshold: int | None = None
     fill: bool | None = None
     fill_band: int | None = None
+    fill_margin: int | None = 8
 
     def __post_init__(self) -> None:
         if int(self.min_disparity) != self.min_disparity or self.min_disparity < 0:
@@ -130,6 +139,9 @@ class StereoOptions:
         if self.fill_band is not None and (isinstance(self.fill_band, bool) or int(self.fill_band) != self.fill_band
                                            or self.fill_band < 3):
             raise ValueRangeError(f"fill_band: expected an integer >= 3 or None, got {self.fill_band!r}")
+        if self.fill_margin is not None and (isinstance(self.fill_margin, bool)
+                                             or int(self.fill_margin) != self.fill_margin or self.fill_margin < 0):
+            raise ValueRangeError(f"fill_margin: expected an integer >= 0 or None, got {self.fill_margin!r}")
 
     @classmethod
     def dense(cls) -> StereoOptions:

@@ -20,6 +20,7 @@ constant-velocity guess) are in :mod:`egorefine.refine._steps`.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import torch
@@ -74,6 +75,11 @@ __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner"]
 # pyramid levels of the feature tracker (its default)
 _TRACK_LEVELS = 3
 
+
+# The fill's candidate count under StereoOptions.fill_margin is a multiple of this: the compiled census + SGM kernel
+# steps 32 candidates at a time, and a count between multiples runs slower than the next multiple
+# (docs/decisions.md, "The fill's range from the prediction").
+_FILL_CANDIDATE_STEP = 32
 
 # measure_holes: a 6 px tile is matched where at least half of it is holes. Compact disocclusions and regions
 # entering the view fill such tiles; so do the strips a few pixels wide that a depth edge uncovers, which larger
@@ -398,7 +404,7 @@ class EgoMotionRefiner(nn.Module):
     def _fill(self, left: torch.Tensor, right: torch.Tensor, prior: torch.Tensor | None,
               prior_ok: torch.Tensor | None) -> StereoOutput:
         """The fill: banded around ``prior`` for the items where ``prior_ok`` holds, full range for the others."""
-        args = (left, right, self.max_disparity, self.stereo.min_disparity)
+        args = (left, right, self._fill_range(prior, prior_ok), self.stereo.min_disparity)
         band = self.stereo.fill_band
         use = prior is not None and band is not None
         if not use or bool(prior_ok.all()):
@@ -408,7 +414,21 @@ class EgoMotionRefiner(nn.Module):
         # (a rare frame: some items' motion failed) each item its own kind of fill
         banded, full = _fill_matcher(*args, prior, band), _fill_matcher(*args)
         pick = prior_ok.view(-1, 1, 1, 1)
-        return StereoOutput(*(torch.where(pick, a, b) for a, b in zip(banded, full)))
+        return StereoOutput(*(torch.where(pick, a, b) for a, b in zip(banded, full, strict=True)))
+
+    def _fill_range(self, prior: torch.Tensor | None, prior_ok: torch.Tensor | None) -> int:
+        """The full-range fill's ``max_disparity``: the prediction's largest value plus ``stereo.fill_margin``, the
+        candidate count rounded up to a multiple of :data:`_FILL_CANDIDATE_STEP` (``StereoOptions.fill_margin``);
+        ``max_disparity`` without a prediction for every item, with a band fill or with the margin off."""
+        low, margin = self.stereo.min_disparity, self.stereo.fill_margin
+        if prior is None or margin is None or self.stereo.fill_band is not None or not bool(prior_ok.all()):
+            return self.max_disparity
+        prior = prior.detach()
+        # (numpy's max on the CPU: a torch op over the map would wake torch's OpenMP threads beside the kernels)
+        largest = float(prior.numpy().max() if prior.device.type == "cpu" else prior.amax())
+        need = math.ceil(largest) + margin + 1 - low
+        step = _FILL_CANDIDATE_STEP
+        return min(self.max_disparity, low + step * max(1, -(-need // step)))
 
     def measure(self, left: torch.Tensor, right: torch.Tensor) -> tuple[StereoOutput, torch.Tensor]:
         """The verification measurement of one stereo pair before the correction network, and its network input.

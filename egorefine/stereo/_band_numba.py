@@ -321,7 +321,7 @@ def match_band(grey_l: torch.Tensor, grey_r: torch.Tensor, lo: torch.Tensor, wid
     col_bands = _bands(w, threads) if paths == 4 else [(0, w)]
     r, pad = block_size // 2, census_window // 2
     workers = Workers(threads)
-    for i in range(b):
+    def item(i: int) -> None:  # (a function, so that each lambda below sees this item's arrays)
         census = np.empty((2, h, w), np.int64)
         padded = [np.pad(img[i, 0], pad, mode="edge") for img in (left, right)]
         workers.map(lambda job: _census_rows(padded[job[0]], census_window, *job[1], census[job[0]]),
@@ -332,8 +332,10 @@ def match_band(grey_l: torch.Tensor, grey_r: torch.Tensor, lo: torch.Tensor, wid
         workers.map(lambda band: _raw_rows(census[0], census[1], lo_np[i], *band, raw), row_bands)
         workers.map(lambda band: _rows_pass(census[0], census[1], lo_np[i], raw, r, *band, f1, f2, invalid, inf,
                                             cost, acc), row_bands)
-        del raw
         workers.map(lambda band: _vertical_pass(cost, acc, lo_np[i], *band, shifts, True, f1, f2, invalid, inf,
                                                 select, disparity[i], valid[i], variance[i]), col_bands)
+
+    for i in range(b):
+        item(i)
     as_t = lambda a: torch.from_numpy(a).unsqueeze(1)  # noqa: E731
     return as_t(disparity), as_t(valid), as_t(variance)

@@ -549,15 +549,17 @@ _workspace = threading.local()
 
 
 def _volume(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
-    """The calling thread's reusable work volume ``name`` (allocated anew when the size or type changes)."""
+    """The calling thread's reusable work volume ``name``: a view of a kept buffer, allocated anew only when it is
+    too small or of another type (a call with fewer candidates, e.g. a range cut by a prediction, reuses it)."""
     arrays = getattr(_workspace, "arrays", None)
     if arrays is None:
         arrays = _workspace.arrays = {}
-    array = arrays.get(name)
-    if array is None or array.shape != shape or array.dtype != dtype:
+    size = int(np.prod(shape))
+    flat = arrays.get(name)
+    if flat is None or flat.size < size or flat.dtype != dtype:
         arrays.pop(name, None)  # free the old one before allocating the new
-        array = arrays[name] = np.empty(shape, dtype=dtype)
-    return array
+        flat = arrays[name] = np.empty(size, dtype=dtype)
+    return flat[:size].reshape(shape)
 
 
 def release_workspace() -> None:

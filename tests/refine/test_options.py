@@ -165,3 +165,65 @@ def test_the_box_matchers_own_count_is_carried_only_with_a_fill():
             assert state.matched.tolist() == [int(box.valid.sum())]
         else:
             assert state.matched is None
+
+
+def test_the_fill_searches_up_to_the_predictions_largest_value_plus_its_margin(monkeypatch):
+    """StereoOptions.fill_margin: the first frame's fill searches the full range; a later verification's only up to
+    the prediction's largest value plus the margin, the candidate count rounded up to a multiple of 32; with
+    ``fill_margin=None``, or a band fill, every fill searches the full range."""
+    from egorefine.refine import refiner as refiner_module
+
+    seq = render_sequence(num_frames=4, height=60, width=160, seed=4)
+    K, b = seq.K[None], torch.tensor([seq.baseline])
+    assert float(seq.disparity.amax()) + 8 + 1 < 64  # the cut range lies below max_disparity on this scene
+    fill, predict = refiner_module._fill_matcher, refiner_module.finish_prediction
+    seen, largest = [], []
+
+    def spy_fill(left, right, max_disparity, *args):
+        seen.append(max_disparity)
+        return fill(left, right, max_disparity, *args)
+
+    def spy_predict(*args, **kwargs):
+        pred = predict(*args, **kwargs)
+        largest.append(float(pred.disparity.amax()))
+        return pred
+
+    monkeypatch.setattr(refiner_module, "_fill_matcher", spy_fill)
+    monkeypatch.setattr(refiner_module, "finish_prediction", spy_predict)
+    for options, expect_cut in ((StereoOptions(), True), (StereoOptions(fill_margin=None), False),
+                                (StereoOptions(fill_band=12), False)):
+        seen.clear(), largest.clear()
+        refiner = EgoMotionRefiner(max_disparity=96, verify_every=3, fusion="kalman", stereo=options)
+        state = None
+        for t in range(len(seq)):
+            _, state = refiner(seq.left[t : t + 1], seq.right[t : t + 1], K, b, state)
+        assert seen[0] == 96  # the first frame: no prediction
+        later = seen[1:]
+        assert len(later) == 1  # frame 3
+        if expect_cut:
+            need = int(torch.tensor(largest[-1]).ceil()) + 8 + 1
+            assert later[0] == 32 * -(-need // 32) < 96
+        else:
+            assert later[0] == 96
+    with pytest.raises(ValueRangeError, match="fill_margin"):
+        StereoOptions(fill_margin=-1)
+
+
+def test_a_surface_nearer_than_the_cut_range_is_still_measured_by_the_first_matcher():
+    """With the fill's range cut by a prediction that knows nothing of a near surface, that surface keeps a
+    full-range measurement: the box matcher searches the whole range at every verification, and the fill adds no
+    value where the box matcher has one."""
+    g = torch.Generator().manual_seed(0)
+    right = torch.rand(1, 1, 48, 128, generator=g)
+    true = 40  # a fronto-parallel surface at 40 px, beyond the cut range of a prediction of about 2 px
+    left = torch.roll(right, true, dims=-1)
+    refiner = EgoMotionRefiner(max_disparity=64, fusion="kalman")
+    prior = torch.full((1, 1, 48, 128), 2.0)
+    assert refiner._fill_range(prior, torch.tensor([True])) == 32
+    out, matched = refiner._stereo(left, right, 5, prior=prior, prior_ok=torch.tensor([True]))
+    inside = matched[..., :, true + 8 : -8]
+    assert inside.float().mean() > 0.9
+    # (the sub-pixel fit on white noise moves a value by up to ~0.13 px; the cut range ends 8 px below the truth)
+    torch.testing.assert_close(out.disparity[..., :, true + 8 : -8][inside],
+                               torch.full_like(out.disparity[..., :, true + 8 : -8][inside], float(true)),
+                               atol=0.3, rtol=0)
