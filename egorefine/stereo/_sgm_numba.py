@@ -29,7 +29,7 @@ cross column bands, so their vertical phase is one band. Compiled with ``cache=T
 call on a machine compiles for several seconds.
 
 The two volumes (``H W D`` int16 costs and the path sums, int16 or float32) are kept per calling
-thread and reused by the next call of the same size, as OpenCV's SGBM keeps its buffer: faulting in
+thread and reused by the next call that fits in them, as OpenCV's SGBM keeps its buffer: faulting in
 fresh pages for them on every call costs a sizeable share of the call (docs/decisions.md).
 :func:`release_workspace` frees them.
 
@@ -567,7 +567,7 @@ def release_workspace() -> None:
 
     Public as :func:`egorefine.stereo.release_sgm_workspace`. :func:`~egorefine.stereo.match_stereo` with
     ``cost="census", aggregation="sgm"`` on float32 CPU images keeps its two volumes (4 to 6 bytes per pixel and
-    candidate disparity) for the next call of the same size; call this when a thread is done matching, to hand
+    candidate disparity) for the next call that fits in them; call this when a thread is done matching, to hand
     the memory back. The next call allocates them anew.
 
     Example:

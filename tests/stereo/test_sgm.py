@@ -163,16 +163,19 @@ def test_numba_textureless_pair_is_all_invalid_without_nan():
 
 @needs_numba
 def test_reused_work_volumes_do_not_leak_between_calls():
-    # The work volumes are kept per thread and reused by the next call of the same size: a call on other images
-    # (and on another size) in between must not change a result.
+    # The work volumes are kept per thread and reused by the next call that fits in them: a call on other images
+    # (and on a smaller size, which takes a view of the same buffers) in between must not change a result.
     kw = {"cost": "census", "aggregation": "sgm", "block_size": 5}
     _sgm_numba.release_workspace()
     left, right = _random_pair(1, 20, 36, seed=11)
     first = match_stereo(left, right, 8, **kw)
-    assert {a.shape for a in _sgm_numba._workspace.arrays.values()} == {(20, 36, 8)}
+    assert {a.size for a in _sgm_numba._workspace.arrays.values()} == {20 * 36 * 8}
     other_l, other_r = _random_pair(1, 20, 36, seed=12, shift=5)
     match_stereo(other_l, other_r, 8, **kw)
-    match_stereo(*_random_pair(1, 15, 28, seed=13), 6, **kw)  # another size: the volumes are replaced
+    match_stereo(*_random_pair(1, 15, 28, seed=13), 6, **kw)  # a smaller size: views of the same buffers
+    assert {a.size for a in _sgm_numba._workspace.arrays.values()} == {20 * 36 * 8}
+    match_stereo(*_random_pair(1, 15, 28, seed=13), 16, **kw)  # a larger volume: the buffers are replaced
+    assert {a.size for a in _sgm_numba._workspace.arrays.values()} == {15 * 28 * 16}
     again = match_stereo(left, right, 8, **kw)
     for a, b in zip(first, again, strict=True):
         assert torch.equal(a, b)
