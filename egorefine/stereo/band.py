@@ -36,7 +36,6 @@ in the images, so the outputs carry no gradient (the full census matcher's do no
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from ..core import (
@@ -51,9 +50,16 @@ from ..core import (
 from . import _band_numba
 from .cost import _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import INVALID_VARIANCE
-from .matching import _SGM_PENALTIES, COST_FLOORS, StereoOutput, _check_inputs, _select, _textured_numpy
+from .matching import (
+    COST_FLOORS,
+    StereoOutput,
+    _check_inputs,
+    _despeckle,
+    _mask_untextured_numpy,
+    _select,
+    _sgm_penalties,
+)
 from .sgm import sgm_aggregate
-from .speckle import clear_invalid_, remove_speckles
 
 __all__ = ["match_sgm_band", "band_start"]
 
@@ -144,36 +150,24 @@ def match_sgm_band(
     num = max_disparity - min_disparity
     wb = min(width, num)
     lo = band_start(prior, max_disparity, min_disparity, wb)
-    bits = census_window * census_window - 1
     scale = float(block_size * block_size)
-    p1, p2 = (p * bits for p in _SGM_PENALTIES["census"])
-    p1 = (p1 if sgm_p1 is None else sgm_p1) * scale
-    p2 = (p2 if sgm_p2 is None else sgm_p2) * scale
+    p1, p2 = _sgm_penalties("census", census_window, sgm_p1, sgm_p2, scale)
     opts = {"subpixel": subpixel, "subpixel_fit": subpixel_fit, "lr_check": False, "uniqueness_ratio": 0.0,
             "differentiable": False, "soft_radius": None, "temperature": 1.0, "cost_floor": COST_FLOORS["census"],
             "scale": scale, "min_disparity": min_disparity}
     if use_compiled(grey_l, grey_r) and wb >= 2:
-        disparity, valid, variance = _band_numba.match_band(grey_l, grey_r, lo, wb, max_disparity, min_disparity,
-                                                            block_size, census_window, p1, p2, sgm_paths, opts)
-        d, v, var = disparity.numpy(), valid.numpy(), variance.numpy()
-        np.logical_and(v, _textured_numpy(grey_l.numpy(), block_size, prefilter_cap, texture_threshold), out=v)
-        d[~v] = 0.0
-        var[~v] = INVALID_VARIANCE
+        out = _mask_untextured_numpy(
+            _band_numba.match_band(grey_l, grey_r, lo, wb, max_disparity, min_disparity, block_size, census_window,
+                                   p1, p2, sgm_paths, opts),
+            grey_l, block_size, prefilter_cap, texture_threshold)
     else:
         disparity, valid, variance = _band_torch(grey_l, grey_r, lo, wb, max_disparity, min_disparity, block_size,
                                                  census_window, p1, p2, sgm_paths, opts)
         texture = box_mean_same(prefilter_xsobel(grey_l, prefilter_cap).abs(), block_size)
         valid = valid & (texture >= texture_threshold)
-        disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
-        variance = torch.where(valid, variance, torch.full_like(variance, INVALID_VARIANCE))
-    if speckle_size > 0:  # as match_stereo
-        valid = remove_speckles(disparity, valid, speckle_size, speckle_range)
-        if use_compiled(disparity, variance, valid):
-            clear_invalid_(valid, disparity, variance, INVALID_VARIANCE)
-        else:
-            disparity = torch.where(valid, disparity, torch.zeros_like(disparity))
-            variance = torch.where(valid, variance, torch.full_like(variance, INVALID_VARIANCE))
-    return StereoOutput(disparity, valid, variance)
+        out = StereoOutput(torch.where(valid, disparity, torch.zeros_like(disparity)), valid,
+                           torch.where(valid, variance, torch.full_like(variance, INVALID_VARIANCE)))
+    return _despeckle(out, speckle_size, speckle_range)  # as match_stereo
 
 
 def _band_torch(grey_l: torch.Tensor, grey_r: torch.Tensor, lo: torch.Tensor, width: int, max_disparity: int,

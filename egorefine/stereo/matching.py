@@ -382,14 +382,42 @@ def match_stereo(
     out = _match(left, right, max_disparity, min_disparity, block_size, cost, aggregation, subpixel, subpixel_fit,
                  lr_check, lr_threshold, uniqueness_ratio, texture_threshold, prefilter, prefilter_cap, census_window,
                  sgm_p1, sgm_p2, sgm_paths, differentiable, temperature, soft_radius, census_max_distance)
-    if speckle_size > 0:
-        valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
-        if use_compiled(out.disparity, out.variance, valid):  # compiled: no torch pass over the full maps
-            clear_invalid_(valid, out.disparity, out.variance, INVALID_VARIANCE)  # (fresh outputs of _match)
-            return StereoOutput(out.disparity, valid, out.variance)
-        out = StereoOutput(torch.where(valid, out.disparity, torch.zeros_like(out.disparity)), valid,
-                           torch.where(valid, out.variance, torch.full_like(out.variance, INVALID_VARIANCE)))
-    return out
+    return _despeckle(out, speckle_size, speckle_range)
+
+
+def _despeckle(out: StereoOutput, speckle_size: int, speckle_range: float) -> StereoOutput:
+    """A matcher's fresh output with its speckles (:func:`remove_speckles`) made not valid; unchanged for
+    ``speckle_size == 0``. Compiled, it clears the removed pixels of ``out``'s maps in place."""
+    if speckle_size <= 0:
+        return out
+    valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
+    if use_compiled(out.disparity, out.variance, valid):  # compiled: no torch pass over the full maps
+        clear_invalid_(valid, out.disparity, out.variance, INVALID_VARIANCE)  # (fresh outputs of the matcher)
+        return StereoOutput(out.disparity, valid, out.variance)
+    return StereoOutput(torch.where(valid, out.disparity, torch.zeros_like(out.disparity)), valid,
+                        torch.where(valid, out.variance, torch.full_like(out.variance, INVALID_VARIANCE)))
+
+
+def _sgm_penalties(cost: str, census_window: int, sgm_p1: float | None, sgm_p2: float | None,
+                   scale: float) -> tuple[float, float]:
+    """SGM's ``(P1, P2)`` in the cost volume's units: the per-cost defaults (census: per census bit) or the given
+    values, times the window sum's ``scale``."""
+    p1, p2 = _SGM_PENALTIES[cost]
+    if cost == "census":  # per census bit
+        p1, p2 = p1 * (census_window * census_window - 1), p2 * (census_window * census_window - 1)
+    return (p1 if sgm_p1 is None else sgm_p1) * scale, (p2 if sgm_p2 is None else sgm_p2) * scale
+
+
+def _mask_untextured_numpy(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey_l: torch.Tensor,
+                           block_size: int, prefilter_cap: float, texture_threshold: float) -> StereoOutput:
+    """A compiled matcher's fresh CPU ``(disparity, valid, variance)`` with the texture check applied and the
+    maps cleared where not valid, in place with numpy (no torch pass over the full maps)."""
+    disparity, valid, variance = out
+    d, v, var = disparity.numpy(), valid.numpy(), variance.numpy()
+    np.logical_and(v, _textured_numpy(grey_l.detach().numpy(), block_size, prefilter_cap, texture_threshold), out=v)
+    d[~v] = 0.0
+    var[~v] = INVALID_VARIANCE
+    return StereoOutput(disparity, valid, variance)
 
 
 def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int, cost: str,
@@ -428,23 +456,14 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
     parts: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     strip = _STRIP_ELEMENTS if grey_l.device.type == "cpu" else _GPU_STRIP_ELEMENTS
     if aggregation == "sgm":
-        p1, p2 = _SGM_PENALTIES[cost]
-        if cost == "census":  # per census bit
-            p1, p2 = p1 * (census_window * census_window - 1), p2 * (census_window * census_window - 1)
-        p1 = (p1 if sgm_p1 is None else sgm_p1) * opts["scale"]
-        p2 = (p2 if sgm_p2 is None else sgm_p2) * opts["scale"]
+        p1, p2 = _sgm_penalties(cost, census_window, sgm_p1, sgm_p2, opts["scale"])
     if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
         # CPU inference: census, SGM and selection compiled (the same float32 results as below), then the texture
         # check and the masking in numpy (no torch pass over the full maps)
-        disparity, valid, variance = _sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity,
-                                                                  block_size, census_window, p1, p2, sgm_paths,
-                                                                  opts)[:3]
-        d, v, var = disparity.numpy(), valid.numpy(), variance.numpy()
-        np.logical_and(v, _textured_numpy(grey_l.detach().numpy(), block_size, prefilter_cap, texture_threshold),
-                       out=v)
-        d[~v] = 0.0
-        var[~v] = INVALID_VARIANCE
-        return StereoOutput(disparity, valid, variance)
+        return _mask_untextured_numpy(
+            _sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size, census_window,
+                                         p1, p2, sgm_paths, opts)[:3],
+            grey_l, block_size, prefilter_cap, texture_threshold)
     # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
     texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
     textured = texture >= texture_threshold
