@@ -11,7 +11,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["AVAILABLE", "Workers", "bands", "jit", "numba"]
+__all__ = ["AVAILABLE", "MIN_SPLIT_PIXELS", "Workers", "bands", "jit", "numba", "split"]
 
 try:
     import numba
@@ -41,6 +41,16 @@ def bands(n: int, parts: int) -> list[tuple[int, int]]:
     """``[start, stop)`` ranges that split ``n`` rows (or columns) into at most ``parts`` nearly equal bands."""
     step = -(-n // max(1, parts))
     return [(start, min(n, start + step)) for start in range(0, n, step)]
+
+
+# Work below this many pixels runs as one job: a thread hand-off costs more than splitting it saves.
+MIN_SPLIT_PIXELS = 1 << 16
+
+
+def split(n: int, threads: int, pixels: int | None = None) -> list[tuple[int, int]]:
+    """:func:`bands` of ``n`` rows (or pixels) over ``threads``, or the one band ``[(0, n)]`` where the work,
+    ``pixels`` (default ``n``), is below :data:`MIN_SPLIT_PIXELS`."""
+    return bands(n, threads) if (n if pixels is None else pixels) >= MIN_SPLIT_PIXELS else [(0, n)]
 
 
 class Workers:

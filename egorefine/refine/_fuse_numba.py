@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from ..core._jit import AVAILABLE, Workers
-from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
+from ..core._jit import split as _split
 
 __all__ = ["AVAILABLE", "confidence", "kalman_fuse", "overrule", "plausible", "take_measurements"]
 
@@ -122,11 +122,6 @@ def _bytes(a: np.ndarray) -> np.ndarray:
     return a.view(np.uint8) if a.dtype == np.bool_ else a
 
 
-def _chunks(n: int, threads: int) -> list[tuple[int, int]]:
-    """``[start, stop)`` bands of ``n`` pixels, one per thread where ``n`` is large enough to split."""
-    return _bands(n, threads) if n >= 65536 else [(0, n)]
-
-
 def kalman_fuse(e: torch.Tensor, s: torch.Tensor, m_ok: torch.Tensor, p_ok: torch.Tensor, P: torch.Tensor,
                 R: torch.Tensor, count: torch.Tensor, kalman_gate: float, reset_after: int, min_variance: float,
                 max_unverified_variance: float | None, threads: int | None = None
@@ -139,7 +134,7 @@ def kalman_fuse(e: torch.Tensor, s: torch.Tensor, m_ok: torch.Tensor, p_ok: torc
     has_max = max_unverified_variance is not None
     prm = np.array([kalman_gate, reset_after, min_variance, max_unverified_variance if has_max else 0.0], np.float32)
     threads = max(1, threads or torch.get_num_threads())
-    Workers(threads).map(lambda c: _kalman(*flat, c[0], c[1], prm, has_max, *outs), _chunks(n, threads))
+    Workers(threads).map(lambda c: _kalman(*flat, c[0], c[1], prm, has_max, *outs), _split(n, threads))
     d, var, cnt, valid = (torch.from_numpy(o).view(shape) for o in outs)
     return d, var, valid, cnt
 
@@ -160,7 +155,7 @@ def take_measurements(disparity: torch.Tensor, variance: torch.Tensor, valid: to
     has_margin = background_margin is not None
     prm = np.array([max_variance, background_margin if has_margin else 0.0], np.float32)
     threads = max(1, threads or torch.get_num_threads())
-    Workers(threads).map(lambda c: _take(*flat, c[0], c[1], prm, has_margin, *outs), _chunks(n, threads))
+    Workers(threads).map(lambda c: _take(*flat, c[0], c[1], prm, has_margin, *outs), _split(n, threads))
     return tuple(torch.from_numpy(o).view(shape) for o in outs)
 
 
@@ -170,7 +165,7 @@ def confidence(valid: torch.Tensor, variance: torch.Tensor, threads: int | None 
     v, var = valid.detach().contiguous().reshape(-1).numpy(), variance.detach().contiguous().reshape(-1).numpy()
     out = np.empty(var.shape[0], np.float32)
     threads = max(1, threads or torch.get_num_threads())
-    Workers(threads).map(lambda c: _confidence(v, var, c[0], c[1], out), _chunks(out.shape[0], threads))
+    Workers(threads).map(lambda c: _confidence(v, var, c[0], c[1], out), _split(out.shape[0], threads))
     return torch.from_numpy(out).view(shape)
 
 
@@ -189,7 +184,7 @@ def overrule(maps: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
     flags = [_bytes(t.detach().contiguous().numpy()) for t in (keep, restart)]
     outs = [np.empty_like(c) for c in corrected]
     threads = max(1, threads or torch.get_num_threads())
-    work = [(k, c) for k in range(4) for c in _chunks(reg.shape[1], threads)]
+    work = [(k, c) for k in range(4) for c in _split(reg.shape[1], threads)]
     Workers(threads).map(lambda job: _overrule(corrected[job[0]], pm[job[0]] if job[0] < 3 else None,
                                                mm[job[0]] if job[0] < 3 else None, reg, *flags, *job[1],
                                                outs[job[0]]), work)

@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from ..core._jit import AVAILABLE, Workers
-from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
+from ..core._jit import split as _split
 
 __all__ = ["AVAILABLE", "disagreeing_regions"]
 
@@ -67,7 +67,7 @@ def disagreeing_regions(predicted: torch.Tensor, predicted_valid: torch.Tensor, 
     o = out[:, 0].numpy()
     threads = max(1, threads or torch.get_num_threads())
     rows = -(-H // tile)
-    jobs = [(b, band) for b in range(B) for band in (_bands(rows, threads) if H * W >= 65536 else [(0, rows)])]
+    jobs = [(b, band) for b in range(B) for band in _split(rows, threads, H * W)]
     settings = (np.float32(px), np.float32(min_support), np.float32(share))
     Workers(threads).map(lambda job: _regions(p[job[0]], po[job[0]], m[job[0]], mo[job[0]], tile, *settings, *job[1],
                                               o[job[0]]), jobs)
