@@ -387,9 +387,10 @@ class EgoMotionRefiner(nn.Module):
         """The verification measurement, and the validity of its first matcher alone: the health signal (a
         swapped or blank pair still gives SGM matches in the fill, but no longer the box matcher's).
 
-        ``prior``: the prediction ``(B, 1, H, W)``, finite (None on the first frame); the fill of the items where
-        ``prior_ok`` ``(B,)`` holds (their motion is good) searches ``stereo.fill_band`` candidates around it, the
-        others the full range."""
+        ``prior``: the prediction ``(B, 1, H, W)``, finite (None on the first frame); where ``prior_ok`` ``(B,)``
+        holds for every item (their motion is good) the fill searches up to its largest value plus
+        ``stereo.fill_margin`` (:meth:`_fill_range`), or ``stereo.fill_band`` candidates around it item by item;
+        else the full range."""
         if right is None:
             raise ValueRangeError(f"right: frame {frame} needs stereo matching ({why}), but right is None")
         out = match_stereo(left, right, self.max_disparity, min_disparity=self.stereo.min_disparity,
@@ -590,8 +591,8 @@ class EgoMotionRefiner(nn.Module):
             # 4. verify against fresh stereo and correct.
             why = "verification" if frame % self.verify_every == 0 else (
                 "the ego-motion failed" if not bool(ok.all()) else "adaptive: low coverage or confidence")
-            # (the fill searches a band around the prediction where the motion is good; the box matcher the full
-            # range everywhere, so a wrong prediction never yields a stale value)
+            # (where the motion is good the fill's range comes from the prediction: fill_margin, fill_band; the box
+            # matcher searches the full range everywhere, so a wrong prediction never yields a stale value)
             meas, matched = self._stereo(grey, right, frame, why, prior=pred.disparity, prior_ok=ok)
             if frame % self.verify_every != 0:
                 status = status | int(Status.STEREO_FORCED)
