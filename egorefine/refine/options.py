@@ -87,6 +87,10 @@ class StereoOptions:
             prediction says but what entered since the last verification, and the first matcher still searches
             the full range for it. The first frame, a frame where some item's ego-motion failed and a band fill
             (``fill_band``) search the full range. None: always the full range.
+        fill_scale: 2 (the default): the full-range fill matches the pair at half resolution
+            (:func:`~egorefine.stereo.match_half_resolution`: an eighth of the work; in the weakly textured
+            holes it fills, a window twice the size matches more of them, and the loop's error fell on tuning
+            sequences, docs/decisions.md "A half-resolution fill"). 1: at full resolution.
 
     Example:
         >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
@@ -99,6 +103,8 @@ class StereoOptions:
         (None, 16)
         >>> StereoOptions().fill_margin, StereoOptions(fill_margin=None).fill_margin
         (8, None)
+        >>> StereoOptions().fill_scale, StereoOptions(fill_scale=1).fill_scale
+        (2, 1)
     """
 
     min_disparity: int = 0
@@ -114,6 +120,7 @@ class StereoOptions:
     fill: bool | None = None
     fill_band: int | None = None
     fill_margin: int | None = 8
+    fill_scale: int = 2
 
     def __post_init__(self) -> None:
         if int(self.min_disparity) != self.min_disparity or self.min_disparity < 0:
@@ -139,6 +146,8 @@ class StereoOptions:
         if self.fill_band is not None and (isinstance(self.fill_band, bool) or int(self.fill_band) != self.fill_band
                                            or self.fill_band < 3):
             raise ValueRangeError(f"fill_band: expected an integer >= 3 or None, got {self.fill_band!r}")
+        if self.fill_scale not in (1, 2) or isinstance(self.fill_scale, bool):
+            raise ValueRangeError(f"fill_scale: expected 1 (full resolution) or 2 (half), got {self.fill_scale!r}")
         if self.fill_margin is not None and (isinstance(self.fill_margin, bool)
                                              or int(self.fill_margin) != self.fill_margin or self.fill_margin < 0):
             raise ValueRangeError(f"fill_margin: expected an integer >= 0 or None, got {self.fill_margin!r}")

@@ -45,6 +45,7 @@ from ..motion import solve_ego_motion
 from ..stereo import StereoOutput, fill_invalid, match_residual, match_stereo, match_stereo_regions
 from ..stereo.band import match_sgm_band
 from ..stereo.matching import _TEMPERATURES
+from ..stereo.scale import match_half_resolution
 from ._steps import _confidence, _expected_positions, _overrule, _take_hole_measurements
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
@@ -109,14 +110,17 @@ def _net_output(net: nn.Module, x: torch.Tensor, meas: StereoOutput, name: str) 
 
 @torch.compiler.disable  # not traced: dynamo would unroll SGM's scanline recursion, which has no gradient anyway
 def _fill_matcher(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int,
-                  prior: torch.Tensor | None = None, band: int | None = None) -> StereoOutput:
+                  prior: torch.Tensor | None = None, band: int | None = None, scale: int = 1) -> StereoOutput:
     """:meth:`StereoOptions.dense`'s matcher on detached float32 copies: census is piecewise constant in the
     images (a zero gradient), so nothing is lost and the compiled CPU kernels may run; outputs in ``left``'s
     dtype. With a ``prior`` and a ``band``, only ``band`` candidates around the prior (``match_sgm_band``, the
-    same matcher less its left-right check); else the full range."""
+    same matcher less its left-right check); else the full range, at half resolution with ``scale`` 2
+    (``match_half_resolution``)."""
     dense = StereoOptions.dense().matcher_options()
     left, right = left.detach().float(), right.detach().float()
-    if prior is None or band is None:
+    if (prior is None or band is None) and scale == 2:
+        out = match_half_resolution(left, right, max_disparity, min_disparity=min_disparity, **dense)
+    elif prior is None or band is None:
         out = match_stereo(left, right, max_disparity, min_disparity=min_disparity, **dense)
     else:
         same = {k: dense[k] for k in ("block_size", "subpixel", "speckle_size", "speckle_range") if k in dense}
@@ -406,14 +410,14 @@ class EgoMotionRefiner(nn.Module):
               prior_ok: torch.Tensor | None) -> StereoOutput:
         """The fill: banded around ``prior`` for the items where ``prior_ok`` holds, full range for the others."""
         args = (left, right, self._fill_range(prior, prior_ok), self.stereo.min_disparity)
-        band = self.stereo.fill_band
+        band, scale = self.stereo.fill_band, self.stereo.fill_scale
         use = prior is not None and band is not None
         if not use or bool(prior_ok.all()):
-            return _fill_matcher(*args, prior, band if use else None)
+            return _fill_matcher(*args, prior, band if use else None, scale)
         if not bool(prior_ok.any()):
-            return _fill_matcher(*args)
+            return _fill_matcher(*args, scale=scale)
         # (a rare frame: some items' motion failed) each item its own kind of fill
-        banded, full = _fill_matcher(*args, prior, band), _fill_matcher(*args)
+        banded, full = _fill_matcher(*args, prior, band), _fill_matcher(*args, scale=scale)
         pick = prior_ok.view(-1, 1, 1, 1)
         return StereoOutput(*(torch.where(pick, a, b) for a, b in zip(banded, full, strict=True)))
 

@@ -7,6 +7,7 @@ from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_
 from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, fill_invalid, match_stereo
 from .regions import mask_boxes, match_stereo_regions
 from .residual import match_residual
+from .scale import match_half_resolution
 from .sgm import sgm_aggregate
 from .speckle import remove_speckles
 
@@ -15,6 +16,7 @@ __all__ = [
     "match_stereo",
     "fill_invalid",
     "match_residual",
+    "match_half_resolution",
     "match_stereo_regions",
     "mask_boxes",
     "BlockMatching",

@@ -101,6 +101,7 @@ def test_kalman_mode_fills_the_box_matchers_holes_from_sgm():
     """Kalman mode's default verification: the box matcher where it matched, census + SGM in its holes; paper mode,
     the differentiable preset and an SGM matcher do not fill."""
     from egorefine.stereo import match_stereo
+    from egorefine.stereo.scale import match_half_resolution
 
     seq = render_sequence(num_frames=1, height=60, width=80, seed=2)
     K, b = seq.K[None], torch.tensor([seq.baseline])
@@ -110,16 +111,23 @@ def test_kalman_mode_fills_the_box_matchers_holes_from_sgm():
     assert EgoMotionRefiner(fusion="kalman", differentiable=True).stereo.fill is False
     assert EgoMotionRefiner(fusion="kalman", stereo=StereoOptions.dense()).stereo.fill is False
     assert EgoMotionRefiner(fusion="paper", stereo=StereoOptions(fill=True)).stereo.fill is True
-    out, _ = kalman(seq.left[:1], seq.right[:1], K, b)
     box = match_stereo(seq.left[:1], seq.right[:1], 16)
-    sgm = match_stereo(seq.left[:1], seq.right[:1], 16, **StereoOptions.dense().matcher_options())
-    assert torch.equal(out.valid, box.valid | sgm.valid)
-    assert (sgm.valid & ~box.valid).sum() > 0.1 * box.valid.sum()  # the fill adds pixels, so the check can fail
-    torch.testing.assert_close(out.disparity[box.valid], box.disparity[box.valid])
-    filled = sgm.valid & ~box.valid
-    torch.testing.assert_close(out.disparity[filled], sgm.disparity[filled])
+    dense = StereoOptions.dense().matcher_options()
+    # the default fill matches at half resolution (fill_scale=2); fill_scale=1 at full resolution
+    for scale, sgm in ((2, match_half_resolution(seq.left[:1], seq.right[:1], 16, **dense)),
+                       (1, match_stereo(seq.left[:1], seq.right[:1], 16, **dense))):
+        refiner = kalman if scale == 2 else EgoMotionRefiner(max_disparity=16, fusion="kalman",
+                                                                   stereo=StereoOptions(fill_scale=1))
+        out, _ = refiner(seq.left[:1], seq.right[:1], K, b)
+        assert torch.equal(out.valid, box.valid | sgm.valid)
+        assert (sgm.valid & ~box.valid).sum() > 0.1 * box.valid.sum()  # the fill adds pixels, so the check can fail
+        torch.testing.assert_close(out.disparity[box.valid], box.disparity[box.valid])
+        filled = sgm.valid & ~box.valid
+        torch.testing.assert_close(out.disparity[filled], sgm.disparity[filled])
     with pytest.raises(ValueRangeError, match="fill"):
         StereoOptions(fill="yes")
+    with pytest.raises(ValueRangeError, match="fill_scale"):
+        StereoOptions(fill_scale=3)
 
 
 def test_the_filled_loop_is_denser_than_its_box_matcher_and_stays_accurate():

@@ -69,7 +69,7 @@ def test_width_of_the_range_is_the_full_matcher(frame, compiled, monkeypatch):
     left, right, truth = frame
     band = match_sgm_band(left, right, _wild_prior(truth, 2), 24, width=24)  # the prior does not matter
     full = match_stereo(left, right, 24, **{**DENSE, "lr_check": False})
-    for a, b in zip(band, full):
+    for a, b in zip(band, full, strict=True):
         assert torch.equal(a, b)
 
 
