@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core import ValueRangeError, check_shape, to_grey, use_compiled
-from ..core._jit import AVAILABLE
+from ..core._jit import AVAILABLE, Workers, split
 from ..core._jit import jit as _jit
 from .matching import INVALID_VARIANCE, StereoOutput, match_stereo
 
@@ -45,29 +45,45 @@ if AVAILABLE:
                 x0, x1 = 2 * x, min(2 * x + 1, w - 1)
                 out[y, x] = np.float32(0.25) * ((img[y0, x0] + img[y0, x1]) + (img[y1, x0] + img[y1, x1]))
 
-    @_jit
-    def _double_kernel(d, valid, var, smooth, low, high, out_d, out_valid, out_var):
-        """The module docstring's way back, per full-resolution pixel (the torch path's steps)."""
-        h, w = d.shape
-        big_h, big_w = out_d.shape
+    @_jit(inline="always")
+    def _blend(a, b, c, e, va, vb, vc, ve, variance, smooth, low, high):
+        """One full-resolution pixel (the module docstring's way back): ``a`` its own block, ``b`` the next one
+        along the row, ``c`` the next along the column, ``e`` the diagonal one, ``v*`` their validity. Returns
+        ``(disparity, valid, variance)``; selects, no jumps, so that the row loops become SIMD code."""
         near, far = np.float32(_NEAR), np.float32(1.0 - _NEAR)
-        for y in range(big_h):
+        spread = max(max(a, b), max(c, e)) - min(min(a, b), min(c, e))
+        blend = near * (near * a + far * b) + far * (near * c + far * e)
+        value = np.float32(2.0) * (blend if (va & vb & vc & ve) and spread <= smooth else a)
+        ok = va and low <= value and value < high
+        return (value if ok else np.float32(0.0), ok,
+                np.float32(4.0) * variance if ok else np.float32(INVALID_VARIANCE))
+
+    @_jit
+    def _double_rows(d, valid, var, smooth, low, high, out_d, out_valid, out_var, y0, y1):
+        """Rows ``[y0, y1)`` of the way back (_blend per pixel). Output columns ``2 m`` and ``2 m + 1`` both lie in
+        block ``m`` and blend it with blocks ``m - 1`` and ``m + 1``: the inner loop runs over ``m`` with
+        neighbours at fixed offsets; the border blocks (clamped neighbours) and an odd last column go one by
+        one."""
+        h, w = d.shape
+        big_w = out_d.shape[1]
+        for y in range(y0, y1):
             k = y // 2
             k2 = min(max(k - 1 if y % 2 == 0 else k + 1, 0), h - 1)
+            da, dc, va, vc, vr = d[k], d[k2], valid[k], valid[k2], var[k]
+            od, ov, ovar = out_d[y], out_valid[y], out_var[y]
+            inner = min(w - 1, (big_w - 1) // 2)  # blocks 1 .. inner - 1 have both neighbours and both columns
+            for m in range(1, inner):
+                od[2 * m], ov[2 * m], ovar[2 * m] = _blend(da[m], da[m - 1], dc[m], dc[m - 1], va[m], va[m - 1],
+                                                           vc[m], vc[m - 1], vr[m], smooth, low, high)
+                od[2 * m + 1], ov[2 * m + 1], ovar[2 * m + 1] = _blend(
+                    da[m], da[m + 1], dc[m], dc[m + 1], va[m], va[m + 1], vc[m], vc[m + 1], vr[m], smooth, low, high)
             for x in range(big_w):
                 m = x // 2
+                if 1 <= m < inner:
+                    continue
                 m2 = min(max(m - 1 if x % 2 == 0 else m + 1, 0), w - 1)
-                value = d[k, m]
-                ok = valid[k, m]
-                if ok and valid[k, m2] and valid[k2, m] and valid[k2, m2]:
-                    a, b, c, e = d[k, m], d[k, m2], d[k2, m], d[k2, m2]
-                    if max(max(a, b), max(c, e)) - min(min(a, b), min(c, e)) <= smooth:
-                        value = near * (near * a + far * b) + far * (near * c + far * e)
-                value = np.float32(2.0) * value
-                ok = ok and low <= value and value < high
-                out_valid[y, x] = ok
-                out_d[y, x] = value if ok else np.float32(0.0)
-                out_var[y, x] = np.float32(4.0) * var[k, m] if ok else np.float32(INVALID_VARIANCE)
+                od[x], ov[x], ovar[x] = _blend(da[m], da[m2], dc[m], dc[m2], va[m], va[m2], vc[m], vc[m2], vr[m],
+                                               smooth, low, high)
 
 
 def _halve(grey: torch.Tensor) -> torch.Tensor:
@@ -93,9 +109,12 @@ def _double(half: StereoOutput, height: int, width: int, smooth: float, low: flo
         out_valid = np.empty((b, 1, height, width), dtype=np.bool_)
         out_var = np.empty((b, 1, height, width), dtype=np.float32)
         dn, vn, varn = d.contiguous().numpy(), valid.contiguous().numpy(), var.contiguous().numpy()
+        run = Workers(torch.get_num_threads()).map
         for i in range(b):
-            _double_kernel(dn[i, 0], vn[i, 0], varn[i, 0], np.float32(smooth), np.float32(low), np.float32(high),
-                           out_d[i, 0], out_valid[i, 0], out_var[i, 0])
+            args = (dn[i, 0], vn[i, 0], varn[i, 0], np.float32(smooth), np.float32(low), np.float32(high),
+                    out_d[i, 0], out_valid[i, 0], out_var[i, 0])
+            run(lambda rows, args=args: _double_rows(*args, rows[0], rows[1]),
+                split(height, torch.get_num_threads(), height * width))
         return StereoOutput(torch.from_numpy(out_d), torch.from_numpy(out_valid), torch.from_numpy(out_var))
 
     def rows_and_next(n: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
