@@ -38,3 +38,38 @@ def test_workers_map_in_order_and_survive_a_fork():
         child.kill()
         pytest.fail("the forked child hung on the parent's pool")
     assert queue.get(timeout=5) == [1, 2, 3]
+
+
+def test_workers_map_shares_items_with_the_caller_and_is_a_barrier():
+    """Every item runs once; the calling thread takes items too; a map inside a pool task does not wait on the busy
+    pool (the caller drains it); an exception surfaces once every started item has finished."""
+    import threading
+    import time
+
+    seen: list[tuple[int, str]] = []
+    lock = threading.Lock()
+
+    def slow(x):
+        time.sleep(0.01)
+        with lock:
+            seen.append((x, threading.current_thread().name))
+        return 10 * x
+
+    assert _jit.Workers(2).map(slow, range(8)) == [10 * x for x in range(8)]
+    assert sorted(x for x, _ in seen) == list(range(8))
+    assert any(name == threading.current_thread().name for _, name in seen)  # the caller worked
+    nested = _jit.Workers(2).map(lambda x: sum(_jit.Workers(2).map(lambda y: x * y, range(4))), range(4))
+    assert nested == [6 * x for x in range(4)]
+    finished = []
+
+    def fails(x):
+        if x == 0:
+            raise ValueError("item 0")
+        time.sleep(0.05)
+        finished.append(x)
+
+    with pytest.raises(ValueError, match="item 0"):
+        _jit.Workers(2).map(fails, range(3))
+    count = len(finished)
+    time.sleep(0.2)
+    assert len(finished) == count  # nothing of that map still runs
