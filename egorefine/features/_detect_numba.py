@@ -421,13 +421,8 @@ def _gauss7() -> np.ndarray:
 
 
 def _run(fn, tasks: list, threads: int) -> list:
-    """``[fn(*task) for task in tasks]`` on ``threads`` threads; the calling thread takes the first task."""
-    if threads <= 1 or len(tasks) <= 1:
-        return [fn(*task) for task in tasks]
-    pool = Workers(threads).pool
-    pending = [pool.submit(fn, *task) for task in tasks[1:]]
-    first = fn(*tasks[0])
-    return [first, *(job.result() for job in pending)]
+    """``[fn(*task) for task in tasks]``, shared by the calling thread and the pool (:meth:`Workers.map`)."""
+    return Workers(threads).map(lambda task: fn(*task), tasks)
 
 
 def detect_compiled(

@@ -47,6 +47,8 @@ _F = np.float32
 # Features per thread below which one thread does all (a hand-off to a pool thread costs tens of
 # microseconds, as much as a few dozen level-0 tracks).
 _MIN_PER_THREAD = 48
+# shares of the feature list per worker thread (_Runner)
+_SHARES_PER_THREAD = 4
 
 
 if AVAILABLE:
@@ -463,18 +465,13 @@ class _Runner:
         self.threads = threads
 
     def __call__(self, kernel, mask: np.ndarray, *args) -> None:
-        """``kernel(*args, order)`` for the features where ``mask (B, N)`` is True."""
+        """``kernel(*args, order)`` for the features where ``mask (B, N)`` is True, in shares of at least
+        ``_MIN_PER_THREAD``, a few per thread: a thread that starts late takes fewer (:meth:`Workers.map`)."""
         idx = np.flatnonzero(mask)
         parts = max(1, min(self.threads, math.ceil(len(idx) / _MIN_PER_THREAD)))
-        shares = [np.ascontiguousarray(idx[i::parts]) for i in range(parts)]
-        if parts == 1:
-            kernel(*args, shares[0])
-            return
-        # the calling thread takes the first share itself (a hand-off to a pool thread costs tens of microseconds)
-        pending = [Workers(parts).pool.submit(kernel, *args, share) for share in shares[1:]]
-        kernel(*args, shares[0])
-        for job in pending:
-            job.result()
+        count = 1 if parts == 1 else max(parts, min(_SHARES_PER_THREAD * parts, len(idx) // _MIN_PER_THREAD))
+        shares = [np.ascontiguousarray(idx[i::count]) for i in range(count)]
+        Workers(parts).map(lambda share: kernel(*args, share), shares)
 
 
 def track_compiled(

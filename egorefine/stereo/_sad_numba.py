@@ -24,8 +24,6 @@ would wake torch's OpenMP threads, which then spin beside the kernels.
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import torch
 
@@ -300,34 +298,8 @@ if AVAILABLE:
 
 
 def _run(threads: int, fn, items: list) -> None:
-    """``fn(item)`` for every item, on the calling thread and ``threads - 1`` threads of the
-    :class:`~egorefine.core._jit.Workers` pool, each taking the next item when it is free.
-
-    The caller works too rather than waiting for the pool: on a busy machine a wake-up of a pool thread can wait
-    a time slice, and the items themselves keep the threads balanced.
-    """
-    if threads <= 1 or len(items) <= 1:
-        for item in items:
-            fn(item)
-        return
-    queue = iter(items)
-    lock = threading.Lock()
-
-    def work() -> None:
-        while True:
-            with lock:
-                item = next(queue, None)
-            if item is None:
-                return
-            fn(item)
-
-    pool = Workers(threads).pool
-    helpers = [pool.submit(work) for _ in range(min(threads, len(items)) - 1)]
-    try:
-        work()
-    finally:
-        for helper in helpers:
-            helper.result()
+    """``fn(item)`` for every item, shared by the calling thread and the pool (:meth:`Workers.map`)."""
+    Workers(threads).map(fn, items)
 
 
 def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_d: int, block: int, cap: float,
