@@ -68,6 +68,7 @@ class Workers:
 
     def __init__(self, threads: int) -> None:
         self.pool = None
+        self.threads = max(1, threads)
         if threads > 1:
             key = (os.getpid(), threads)
             with Workers._lock:
@@ -94,10 +95,11 @@ class Workers:
                     return
                 results[k] = fn(items[k])
 
-        helpers = [self.pool.submit(drain) for _ in range(min(self.pool._max_workers, len(items)) - 1)]
+        helpers = [self.pool.submit(drain) for _ in range(min(self.threads, len(items)) - 1)]
         try:
             drain()
         finally:
             for job in helpers:
-                job.result() if job.done() or not job.cancel() else None
+                if not job.cancel():  # started (or done): wait for it; one never started has nothing to wait for
+                    job.result()
         return results

@@ -89,8 +89,8 @@ class StereoOptions:
             (``fill_band``) search the full range. None: always the full range.
         fill_scale: 2 (the default): the full-range fill matches the pair at half resolution
             (:func:`~egorefine.stereo.match_half_resolution`: an eighth of the work; in the weakly textured
-            holes it fills, a window twice the size matches more of them, and the loop's error fell on tuning
-            sequences, docs/decisions.md "A half-resolution fill"). 1: at full resolution.
+            holes it fills, a window twice the size matches more of them; docs/decisions.md, "A half-resolution
+            fill"). 1: at full resolution.
 
     Example:
         >>> StereoOptions(cost="census", aggregation="sgm").matcher_options()  # the rest: the matcher's defaults
