@@ -90,10 +90,10 @@ class Workers:
         taken = itertools.count()  # (its next() is atomic under the GIL)
 
         def drain() -> None:
-            for k in iter(taken.__next__, None):
-                if k >= len(items):
-                    return
+            k = next(taken)
+            while k < len(items):
                 results[k] = fn(items[k])
+                k = next(taken)
 
         helpers = [self.pool.submit(drain) for _ in range(min(self.threads, len(items)) - 1)]
         try:

@@ -118,13 +118,13 @@ def _fill_matcher(left: torch.Tensor, right: torch.Tensor, max_disparity: int, m
     (``match_half_resolution``)."""
     dense = StereoOptions.dense().matcher_options()
     left, right = left.detach().float(), right.detach().float()
-    if (prior is None or band is None) and scale == 2:
-        out = match_half_resolution(left, right, max_disparity, min_disparity=min_disparity, **dense)
-    elif prior is None or band is None:
-        out = match_stereo(left, right, max_disparity, min_disparity=min_disparity, **dense)
-    else:
+    if prior is not None and band is not None:
         same = {k: dense[k] for k in ("block_size", "subpixel", "speckle_size", "speckle_range") if k in dense}
         out = match_sgm_band(left, right, prior.detach().float(), max_disparity, min_disparity, width=band, **same)
+    elif scale == 2:
+        out = match_half_resolution(left, right, max_disparity, min_disparity=min_disparity, **dense)
+    else:
+        out = match_stereo(left, right, max_disparity, min_disparity=min_disparity, **dense)
     return StereoOutput(out.disparity.to(left.dtype), out.valid, out.variance.to(left.dtype))
 
 

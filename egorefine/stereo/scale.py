@@ -58,6 +58,15 @@ if AVAILABLE:
         return (value if ok else np.float32(0.0), ok,
                 np.float32(4.0) * variance if ok else np.float32(INVALID_VARIANCE))
 
+    @_jit(inline="always")
+    def _border_pixel(x, da, dc, va, vc, vr, smooth, low, high, od, ov, ovar):
+        """Output column ``x`` of one row (_blend), its neighbouring block clamped to the row (``da``, ``va``: its
+        blocks' disparities and validity; ``dc``, ``vc``: the next row's; ``vr``: its variances)."""
+        m = x // 2
+        m2 = min(max(m - 1 if x % 2 == 0 else m + 1, 0), da.shape[0] - 1)
+        od[x], ov[x], ovar[x] = _blend(da[m], da[m2], dc[m], dc[m2], va[m], va[m2], vc[m], vc[m2], vr[m], smooth,
+                                       low, high)
+
     @_jit
     def _double_rows(d, valid, var, smooth, low, high, out_d, out_valid, out_var, y0, y1):
         """Rows ``[y0, y1)`` of the way back (_blend per pixel). Output columns ``2 m`` and ``2 m + 1`` both lie in
@@ -77,13 +86,10 @@ if AVAILABLE:
                                                            vc[m], vc[m - 1], vr[m], smooth, low, high)
                 od[2 * m + 1], ov[2 * m + 1], ovar[2 * m + 1] = _blend(
                     da[m], da[m + 1], dc[m], dc[m + 1], va[m], va[m + 1], vc[m], vc[m + 1], vr[m], smooth, low, high)
-            for x in range(big_w):
-                m = x // 2
-                if 1 <= m < inner:
-                    continue
-                m2 = min(max(m - 1 if x % 2 == 0 else m + 1, 0), w - 1)
-                od[x], ov[x], ovar[x] = _blend(da[m], da[m2], dc[m], dc[m2], va[m], va[m2], vc[m], vc[m2], vr[m],
-                                               smooth, low, high)
+            for x in range(min(2, big_w)):  # the border columns
+                _border_pixel(x, da, dc, va, vc, vr, smooth, low, high, od, ov, ovar)
+            for x in range(max(2, 2 * inner), big_w):
+                _border_pixel(x, da, dc, va, vc, vr, smooth, low, high, od, ov, ovar)
 
 
 def _halve(grey: torch.Tensor) -> torch.Tensor:
@@ -104,17 +110,17 @@ def _double(half: StereoOutput, height: int, width: int, smooth: float, low: flo
     in full-resolution px, valid where the block is and ``low <= disparity < high``."""
     d, valid, var = half
     b, _, h, w = d.shape
-    if use_compiled(d, var):
+    if use_compiled(d, valid, var):
         out_d = np.empty((b, 1, height, width), dtype=np.float32)
         out_valid = np.empty((b, 1, height, width), dtype=np.bool_)
         out_var = np.empty((b, 1, height, width), dtype=np.float32)
         dn, vn, varn = d.contiguous().numpy(), valid.contiguous().numpy(), var.contiguous().numpy()
-        run = Workers(torch.get_num_threads()).map
-        for i in range(b):
-            args = (dn[i, 0], vn[i, 0], varn[i, 0], np.float32(smooth), np.float32(low), np.float32(high),
-                    out_d[i, 0], out_valid[i, 0], out_var[i, 0])
-            run(lambda rows, args=args: _double_rows(*args, rows[0], rows[1]),
-                split(height, torch.get_num_threads(), height * width))
+        settings = (np.float32(smooth), np.float32(low), np.float32(high))
+        threads = torch.get_num_threads()
+        jobs = [(i, rows) for i in range(b) for rows in split(height, threads, height * width)]
+        Workers(threads).map(lambda job: _double_rows(dn[job[0], 0], vn[job[0], 0], varn[job[0], 0], *settings,
+                                                      out_d[job[0], 0], out_valid[job[0], 0], out_var[job[0], 0],
+                                                      *job[1]), jobs)
         return StereoOutput(torch.from_numpy(out_d), torch.from_numpy(out_valid), torch.from_numpy(out_var))
 
     def rows_and_next(n: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -157,8 +163,9 @@ def match_half_resolution(left: torch.Tensor, right: torch.Tensor, max_disparity
             bilinearly (1.0: a slanted surface, not a depth edge).
         options: the rest of :func:`~egorefine.stereo.match_stereo`'s keyword arguments, used at half resolution
             (``block_size``, ``cost``, ``aggregation``, ...); its tolerances in px are full-resolution px, halved
-            for the half-resolution matcher (``lr_threshold`` rounded up, ``speckle_range``), so that a left-right
-            check of 2 px means 2 px in either call.
+            for the half-resolution matcher where given (``lr_threshold`` rounded up, ``speckle_range``), so that a
+            left-right check of 2 px means 2 px in either call (match_stereo's own defaults apply at half
+            resolution as they are).
 
     Returns:
         :class:`~egorefine.stereo.StereoOutput`: ``(B, 1, H, W)`` each, disparity in full-resolution px within
