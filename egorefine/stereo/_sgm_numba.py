@@ -57,8 +57,13 @@ if AVAILABLE:  # numba is a dependency, but the package stays importable (torch 
 
 # the encoded value of an out-of-view candidate in the right-view search: INVALID_COST's float32 bits
 _INVALID_CODE = int(np.array(1.0e6, dtype=np.float32).view(np.int32))
-# rows whose horizontal paths step together (_horizontal_band)
-_BAND_ROWS = 8
+
+
+def _band_rows(num: int) -> int:
+    """Rows whose horizontal paths step together (_horizontal_band): 8, or 4 above 32 candidates, where the band's
+    rows of costs and sums (each a multiple of 4 KiB apart for many image widths) outnumber the ways of an L1
+    cache set (docs/decisions.md, "Two SGM passes")."""
+    return 8 if num <= 32 else 4
 
 
 if AVAILABLE:
@@ -650,8 +655,9 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)
         rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
-        run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], _BAND_ROWS, f1,
-                                    f2, path_pad, *tables[:2], cost, acc, colsum_like, shifts if fused else 0,
+        band = _band_rows(num)
+        run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], band, f1, f2,
+                                    path_pad, *tables[:2], cost, acc, colsum_like, shifts if fused else 0,
                                     max_disparity), row_bands)
         run(lambda k: _vertical_select(cost, acc, col_bands[k][0], col_bands[k][1], shifts, not fused, f1, f2,
                                        path_pad, *tables, select, vol, jbest, disparity[i], valid[i], variance[i],

@@ -96,6 +96,7 @@ needs_numba = pytest.mark.skipif(not _sgm_numba.AVAILABLE, reason="numba not ins
     # match_stereo's census defaults (x block**2), with its raw-cost check (a bound not exact in float32)
     (8, 0, 5, 7, 800.0, 3200.0, 4, "equiangular", 2, 0.35 * 48 * 25 + 0.1),
     (10, 0, 3, 5, 96.0, 384.0, 8, "parabola", 2, 0.3 * 24 * 9),
+    (36, 2, 3, 5, 96.0, 384.0, 4, "parabola", 2, None),  # over 32 candidates: 4 rows per horizontal band
 ])
 def test_numba_equals_torch_path(max_d, min_d, block, window, p1, p2, paths, fit, threads, max_raw):
     left, right = _random_pair(2, 21, 37, seed=max_d, shift=min_d + 3)
