@@ -344,6 +344,26 @@ def test_demo_prints_a_table_and_writes_its_pictures(tmp_path, capsys):
                  "--verify-every", "2", "--threads", "1", "--quiet", "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
     assert "kalman mode" in printed and "nan" not in printed and "warm-up" in printed
+    # OpenCV's rows, and the sentence under the table computed from the table's own numbers
+    rows = {line.split("  ")[0]: line.split() for line in printed.splitlines()
+            if line.startswith(("OpenCV", "kalman mode"))}
+    sgbm, kalman = rows["OpenCV SGBM, per frame"], next(v for k, v in rows.items() if k.startswith("kalman"))
+    assert "OpenCV StereoBM, per frame" in rows
+    epe, common = -7, -4  # columns from the right: EPE, bad-0.5, density, EPE common, bad-0.5 common, frames, ms
+    sentence = next(line for line in printed.splitlines() if "against OpenCV SGBM" in line)
+    assert f"EPE {kalman[epe]} px against {sgbm[epe]}" in sentence
+    assert f"{kalman[common]} against {sgbm[common]} on the pixels every row marks valid" in sentence
     for name in ("demo_row.png", "demo_maps.png", "demo_trajectory.png"):
         image = cv2.imread(str(tmp_path / name))
         assert image is not None and image.shape[0] > 200, name
+
+
+def test_demo_verdict_says_lower_higher_faster_from_the_numbers():
+    from egorefine.cli._demo import _verdict
+
+    ours = {"epe": 0.2, "epe common": 0.3, "density": 0.9, "ms": 10.0}
+    theirs = {"epe": 0.4, "epe common": 0.25, "density": 0.8, "ms": 20.0}
+    text = _verdict("ours", ours, theirs)
+    assert "0.200 px against 0.400 on the pixels each marks valid (0.50x, lower)" in text
+    assert "0.300 against 0.250 on the pixels every row marks valid (1.20x, higher)" in text
+    assert "density 0.900 against 0.800" in text and "10.0 against 20.0 ms/frame (0.50x, faster)" in text

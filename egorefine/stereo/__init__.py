@@ -5,6 +5,7 @@ speckle removal."""
 from ._sgm_numba import release_workspace as release_sgm_workspace
 from .cost import COSTS, INVALID_COST, census_transform, cost_volume, prefilter_xsobel
 from .matching import INVALID_VARIANCE, BlockMatching, StereoOutput, block_matching, fill_invalid, match_stereo
+from .opencv import match_opencv, stereo_bm, stereo_sgbm
 from .regions import mask_boxes, match_stereo_regions
 from .residual import match_residual
 from .scale import match_half_resolution
@@ -18,6 +19,9 @@ __all__ = [
     "match_residual",
     "match_half_resolution",
     "match_stereo_regions",
+    "match_opencv",
+    "stereo_bm",
+    "stereo_sgbm",
     "mask_boxes",
     "BlockMatching",
     "StereoOutput",
