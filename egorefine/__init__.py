@@ -1,6 +1,6 @@
 """egorefine: sub-pixel disparity from stereo video, refined with the rig's own ego-motion.
 
-The loop of Skulimowski and Strumillo (PAPER.md): stereo block matching, feature tracking,
+The loop of Skulimowski and Strumillo (docs/method.md): stereo block matching, feature tracking,
 ego-motion from the motion-field equation, prediction of the next disparity map by moving
 every 3-D point, and correction against fresh stereo every i-th frame.
 

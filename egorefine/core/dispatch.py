@@ -1,6 +1,6 @@
 """The one rule that picks a stage's compiled CPU kernel or its torch reference path.
 
-Several stages keep a compiled numba kernel beside their torch code (DESIGN.md, "Two paths, one rule"): the
+Several stages keep a compiled numba kernel beside their torch code (docs/architecture.md, "Two paths"): the
 torch code is the reference (GPU, autograd, ``torch.compile``), the kernel a faster form of the same steps for
 inference on the CPU. A call site never decides for itself; it asks :func:`use_compiled`, which takes the kernel
 only when all of these hold:

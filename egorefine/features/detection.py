@@ -1,6 +1,6 @@
 """Corner detection: gradient response, non-maximum suppression, grid bucketing, sub-pixel peaks.
 
-The paper (PAPER.md, "Features") uses a fast gradient-based keypoint detector and tracks the
+The paper (docs/method.md, "The loop", step 2) uses a fast gradient-based keypoint detector and tracks the
 keypoints frame to frame. Here the response is kornia's Shi-Tomasi (``gftt_response``) or
 Harris (``harris_response``) map; local maxima are kept by a max-pool comparison; an image
 grid spreads the keypoints (each cell gives its best corner before any cell gives its

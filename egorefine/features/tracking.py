@@ -1,6 +1,6 @@
 """Feature tracking by batched local block matching, coarse to fine, with sub-pixel peaks.
 
-The paper (PAPER.md, "Features") tracks keypoints from frame to frame by local block
+The paper (docs/method.md, "The loop", step 2) tracks keypoints from frame to frame by local block
 matching; the tracks feed the least-squares ego-motion of eq. (3). Here every feature of
 every batch item is matched at once, with no Python loop over features:
 

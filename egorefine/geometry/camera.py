@@ -1,6 +1,6 @@
 """Pinhole camera of a rectified stereo rig: disparity <-> depth, project and unproject.
 
-Conventions (PAPER.md): camera frame X right, Y down, Z forward; rectified, non-verged
+Conventions (docs/method.md): camera frame X right, Y down, Z forward; rectified, non-verged
 pair; disparity ``d = x_left - x_right > 0`` in pixels; depth ``Z = f * B / d``. ``K`` is the
 intrinsic matrix of the rectified left camera in pixels, ``(B, 3, 3)``; ``baseline`` is in
 metres, ``(B,)``.
@@ -65,7 +65,7 @@ def _per_batch(value: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 def disparity_to_depth(
     disparity: torch.Tensor, focal: torch.Tensor, baseline: torch.Tensor, min_disparity: float | None = None
 ) -> torch.Tensor:
-    """Depth ``Z = f * B / d`` of a disparity map or of disparities at points (PAPER.md, "Setting").
+    """Depth ``Z = f * B / d`` of a disparity map or of disparities at points (docs/method.md, conventions).
 
     Disparity is clamped to ``min_disparity`` (default: the dtype's epsilon) before dividing, so zero disparity (a
     point at infinity) gives a large finite depth and a finite (zero) gradient instead of Inf/NaN.
@@ -187,7 +187,8 @@ def unproject_disparity(disparity: torch.Tensor, K: torch.Tensor, baseline: torc
     """3-D point, in the left camera's frame, of every pixel of a disparity map.
 
     Each pixel ``(x, y)`` with disparity ``d`` lies at depth ``Z = f B / d`` (``f = fx``) and at
-    ``X = (x - cx) Z / fx``, ``Y = (y - cy) Z / fy``: the points the paper moves by the ego-motion (PAPER.md, step 3).
+    ``X = (x - cx) Z / fx``, ``Y = (y - cy) Z / fy``: the points the paper moves by the ego-motion
+    (docs/method.md, step 3).
 
     Args:
         disparity: ``(B, 1, H, W)`` in pixels (clamped as in :func:`disparity_to_depth`).

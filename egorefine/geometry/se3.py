@@ -9,7 +9,7 @@ Two parameterisations of a 6-vector appear in egorefine:
   for every coefficient (finite values and gradients at exactly zero).
 * The paper's ego-motion ``twist = (U, V, W, alpha, beta, gamma)``: the rig's translation
   ``T`` and rotation ``omega`` over one frame step. A static point then moves, relative to
-  the rig, by ``-T - omega x P`` (PAPER.md eq. 1). We make that exact for a finite step by
+  the rig, by ``-T - omega x P`` (docs/method.md eq. 1). We make that exact for a finite step by
   defining the pose of the new camera in the old one as ``se3_exp(twist)``, so that
 
       camera_t_T_camera_{t-1} = se3_exp(twist)^-1 = se3_exp(-twist),
@@ -206,8 +206,8 @@ def transform_points(T: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 def twist_to_motion(twist: torch.Tensor) -> torch.Tensor:
     """The paper's ego-motion ``(U, V, W, alpha, beta, gamma)`` as the rigid motion ``camera_t_T_camera_{t-1}``.
 
-    A static point moves relative to the rig by ``-T - omega x P`` (PAPER.md eq. 1), with ``T = (U, V, W)`` the rig's
-    translation and ``omega = (alpha, beta, gamma)`` its rotation over the step. The finite-step motion is
+    A static point moves relative to the rig by ``-T - omega x P`` (docs/method.md eq. 1), with ``T = (U, V, W)`` the
+    rig's translation and ``omega = (alpha, beta, gamma)`` its rotation over the step. The finite-step motion is
     ``se3_exp(-twist)``, whose first-order action on a point is exactly eq. (1).
 
     Args:

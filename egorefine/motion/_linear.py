@@ -1,4 +1,4 @@
-"""Solves of the linear motion model (PAPER.md eq. 3) and the linear algebra the SE(3) refinement shares.
+"""Solves of the linear motion model (docs/method.md eq. 3) and the linear algebra the SE(3) refinement shares.
 
 The normal equations are Jacobi-scaled (unit diagonal) and damped by a small multiple of the identity before a
 batched Cholesky factorisation (:func:`_solve_normal`), so every solve is finite; :func:`_well_conditioned` flags

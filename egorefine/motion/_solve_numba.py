@@ -5,7 +5,7 @@ spends its time on it in about 250 operator launches (sampling the disparity at 
 rows of equation (2), the batched RANSAC with its refit, the start motion, the LM, the SE(3) log
 and the quality flag), while the arithmetic is a few hundred thousand multiply-adds. Here one
 compiled call does all of it for every batch item: the input value checks, the disparity sampling
-with its usability rules, the motion-field rows (PAPER.md eq. 2), then per method
+with its usability rules, the motion-field rows (docs/method.md eq. 2), then per method
 
 * ``"exact"``: the MSAC RANSAC over minimal sets of 3 features and its refit by the normal equations
   of eq. (3), the start motion, the LM of :mod:`egorefine.motion._lm_numba`

@@ -1,4 +1,4 @@
-"""The instantaneous motion field of a rigidly moving camera, PAPER.md equation (2).
+"""The instantaneous motion field of a rigidly moving camera, docs/method.md equation (2).
 
 For a feature at pixel ``(x, y)`` with depth ``Z`` and the rig's ego-motion
 ``twist = (U, V, W, alpha, beta, gamma)`` (translation ``T`` and rotation ``omega`` over one
@@ -58,7 +58,7 @@ def motion_field_jacobian(points: torch.Tensor, inv_depth: torch.Tensor, K: torc
 
 
 def motion_field(points: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, twist: torch.Tensor) -> torch.Tensor:
-    """Image flow of static points under the rig's ego-motion, PAPER.md equation (2).
+    """Image flow of static points under the rig's ego-motion, docs/method.md equation (2).
 
     The flow is the instantaneous (first-order) model: for a finite frame step it agrees
     with the true displacement of the projection up to second-order terms in the motion

@@ -3,7 +3,7 @@
 Three solvers share one entry point, :func:`solve_ego_motion`:
 
 ``"linear"``
-    The paper's estimator: the weighted least squares of PAPER.md equation (3) over the
+    The paper's estimator: the weighted least squares of docs/method.md equation (3) over the
     motion field of equation (2), solved through the normal equations (at least 3
     features). Equation (2) is the instantaneous, first-order model, so for a finite frame
     step the estimate is biased by second-order terms (about ``x * (W / Z)^2`` pixels for a
@@ -258,7 +258,7 @@ def solve_ego_motion(
 ) -> EgoMotion:
     """Ego-motion ``camera_t_T_camera_{t-1}`` of the rig from features tracked from frame ``t-1`` to ``t``.
 
-    Depth at each feature comes from the previous disparity (``Z = f B / d``, PAPER.md
+    Depth at each feature comes from the previous disparity (``Z = f B / d``, docs/method.md
     "Conventions"); a feature whose disparity is missing, non-positive, invalid or outside
     the image gets weight 0. See the module docstring for the three methods.
 

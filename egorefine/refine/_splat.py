@@ -1,4 +1,4 @@
-"""The splat's steps for :func:`egorefine.refine.predict_disparity` (PAPER.md eq. 1 in pixel-homogeneous form).
+"""The splat's steps for :func:`egorefine.refine.predict_disparity` (docs/method.md eq. 1 in pixel-homogeneous form).
 
 Private: the pixel-homogeneous motion of a frame step, the padded flat layout that the scatters and gathers share,
 the hard splat's start (coverage test, z-buffer, check) and its inverse-warp refinement, and the coverage splat of

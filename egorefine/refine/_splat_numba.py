@@ -7,7 +7,7 @@ writing full-size maps, the largest part of the refiner's loop on the CPU. Every
 depends only on its own values and a few gathered
 ones, so here it is three loops:
 
-1. (row bands on threads) move every source point (PAPER.md eq. 1 in inverse-depth form), write the
+1. (row bands on threads) move every source point (docs/method.md eq. 1 in inverse-depth form), write the
    padded source maps and each point's z-buffer cell; then (one thread) the scatter of the keys;
 2. (row bands on threads) per target pixel: the 3x3 z-buffer maximum, the candidate, the check in
    frame ``t-1``, the start value and the inverse-warp refinement steps;

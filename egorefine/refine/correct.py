@@ -1,4 +1,4 @@
-"""Correct a predicted disparity map with a fresh stereo measurement (PAPER.md, loop step 4).
+"""Correct a predicted disparity map with a fresh stereo measurement (docs/method.md, loop step 4).
 
 Two fusion rules, chosen by ``fusion``:
 
@@ -183,7 +183,7 @@ def correct_disparity(
     max_unverified_variance: float | None = None,
     gate_softness: float | None = None,
 ) -> Correction:
-    """Fuse the predicted disparity ``e`` with the measured ``s`` (PAPER.md, loop step 4).
+    """Fuse the predicted disparity ``e`` with the measured ``s`` (docs/method.md, loop step 4).
 
     ``fusion="paper"`` (the paper's rule, reproduced exactly):
 
@@ -323,7 +323,7 @@ def correct_disparity(
         fire = both & (innovation.abs() > gate)
         corrected, corrected_var = e + gain * innovation, (1 - gain) ** 2 * P + gain**2 * R
         if gate_softness is None:
-            e_new = torch.where(fire, corrected, e)  # PAPER.md step 4: e <- e + alpha (s - e)
+            e_new = torch.where(fire, corrected, e)  # docs/method.md step 4: e <- e + alpha (s - e)
             P_new = torch.where(fire, corrected_var, P)
         else:  # the gate as a logistic weight of the correction
             w = torch.sigmoid((innovation.abs() - gate) / gate_softness)

@@ -9,7 +9,7 @@ surface.
 
 :func:`close_cracks` tells the two apart by an inverse warp. A hole pixel ``T`` starts from its filled value
 ``d`` (the background rule of :func:`~egorefine.refine.fill_holes_background`). Sent back into the keyframe at
-that disparity (PAPER.md eq. 1 inverted, in inverse-depth form: ``h = K R' K^-1 T + K t' d / (f B)`` with
+that disparity (docs/method.md eq. 1 inverted, in inverse-depth form: ``h = K R' K^-1 T + K t' d / (f B)`` with
 ``key_T_t = (R', t')``), it lands at pixel ``(h_x, h_y) / h_z``, where its disparity would be ``d / h_z``. The
 keyframe is sampled there bilinearly, but only where the four neighbours are valid and on one surface (spread
 below ``surface_tolerance``). The sampled ``d_k`` moved forward gives the new estimate ``d_k h_z``; after

@@ -212,7 +212,7 @@ class TrackingOptions:
 
 @dataclass(frozen=True)
 class PredictionOptions:
-    """The prediction (PAPER.md eq. 1, :func:`egorefine.refine.predict_disparity`).
+    """The prediction (docs/method.md eq. 1, :func:`egorefine.refine.predict_disparity`).
 
     Attributes:
         splat: ``"hard"`` (z-buffer) or ``"soft"`` (softmax) splatting (None: hard, or soft with
@@ -243,7 +243,7 @@ class PredictionOptions:
 
 @dataclass(frozen=True)
 class CorrectionOptions:
-    """The correction at verification (PAPER.md step 4, :func:`egorefine.refine.correct_disparity`).
+    """The correction at verification (docs/method.md step 4, :func:`egorefine.refine.correct_disparity`).
 
     Attributes:
         gate, gain: the paper rule's 0.5 px gate and 0.4 gain.

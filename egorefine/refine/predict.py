@@ -1,4 +1,4 @@
-"""Predict the next disparity map from the current one and the rig's motion (PAPER.md eq. 1, loop step 3).
+"""Predict the next disparity map from the current one and the rig's motion (docs/method.md eq. 1, loop step 3).
 
 Every pixel of frame ``t-1`` is a 3-D point; the rig's motion ``camera_t_T_camera_{t-1}`` moves it
 (the discrete form of eq. 1, ``P' = R P + t``), it is projected into frame ``t`` and splatted there.
@@ -199,7 +199,7 @@ def predict_disparity(
     refine_iterations: int = 1,
     surface_tolerance: float = 0.5,
 ) -> Prediction:
-    """Predict frame ``t``'s disparity by moving every 3-D point of frame ``t-1`` (PAPER.md eq. 1).
+    """Predict frame ``t``'s disparity by moving every 3-D point of frame ``t-1`` (docs/method.md eq. 1).
 
     Each valid source pixel is lifted to 3-D with its disparity, moved by ``motion`` (the exact
     rigid form of eq. 1), projected into frame ``t`` and splatted (module docstring: the coverage

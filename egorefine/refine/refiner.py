@@ -1,7 +1,7 @@
 """The predict-and-correct loop: :class:`EgoMotionRefiner` (one frame per call; :func:`refine_sequence` in
 :mod:`egorefine.refine.sequence` runs it over a video).
 
-One frame (PAPER.md, "The loop"; DESIGN.md, "Data flow"):
+One frame (docs/method.md, "The loop"; docs/architecture.md, "One frame"):
 
 1. track the features of frame t-1 into frame t (search centred where the previous
    motion would carry them);
@@ -132,7 +132,7 @@ class EgoMotionRefiner(nn.Module):
     """Sub-pixel disparity for a stereo video with stereo matching run on a fraction of the frames.
 
     ``out, state = refiner(left, right, K, baseline, state)``, once per frame, ``state=None`` on the first
-    (PAPER.md, "The loop"): track the features, solve the ego-motion (eq. 2, 3, or the exact SE(3) model), predict
+    (docs/method.md, "The loop"): track the features, solve the ego-motion (eq. 2, 3, or the exact SE(3) model), predict
     the disparity by moving every 3-D point (eq. 1) and, every ``verify_every``-th frame, correct the prediction
     with fresh stereo (step 4). Stereo also runs where the ego-motion of some batch item failed and, with
     ``adaptive=True``, where the prediction's coverage or confidence is low; it acts on the whole batch at once.
@@ -150,7 +150,7 @@ class EgoMotionRefiner(nn.Module):
         max_disparity: stereo search range ``[min_disparity, max_disparity)``, px; predicted values outside it are
             not valid (no stereo run could verify them).
         verify_every: run stereo every i-th frame (``i`` in the paper); 1 = every frame.
-        fusion: ``"paper"`` (the gate/gain rule of PAPER.md, step 4) or ``"kalman"`` (per-pixel variance).
+        fusion: ``"paper"`` (the gate/gain rule of docs/method.md, step 4) or ``"kalman"`` (per-pixel variance).
         motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` (RANSAC around it) or ``"exact"`` (SE(3)
             reprojection; the default: first order is not enough at a metre per frame).
         stereo: :class:`~egorefine.refine.options.StereoOptions`, the verification matcher (``min_disparity``,

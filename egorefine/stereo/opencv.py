@@ -4,7 +4,7 @@ StereoBM and StereoSGBM (3-way) with the post-processing OpenCV's own samples an
 ratio of 10, a speckle filter of 100 px within 2 px, and a left-right check of 1 px (``disp12MaxDiff``); SGBM's
 smoothness penalties P1 = 8 cn bs^2 and P2 = 32 cn bs^2 for cn-channel input (grey images: cn = 1). A bare
 ``cv2.StereoBM_create(num, block)`` has none of this post-processing and is a weaker baseline than users meet;
-comparisons against it would flatter (DESIGN.md, "Compare with the baselines as their users run them").
+comparisons against it would flatter.
 
 Example:
     >>> import numpy as np

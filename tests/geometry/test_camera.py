@@ -29,7 +29,7 @@ def test_disparity_depth_round_trip_per_batch():
 
 
 def test_paper_depth_layers():
-    # PAPER.md: with f*B = 31.84, 1 px of disparity is 31.8 m, 2 px 15.9 m, 3 px 10.6 m.
+    # docs/method.md: with f*B = 31.84, 1 px of disparity is 31.8 m, 2 px 15.9 m, 3 px 10.6 m.
     z = disparity_to_depth(torch.tensor([[1.0, 2.0, 3.0]]), torch.tensor([398.0]), torch.tensor([0.08]))
     torch.testing.assert_close(z, torch.tensor([[31.84, 15.92, 10.6133]]), atol=1e-3, rtol=0)
 

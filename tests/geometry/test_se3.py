@@ -53,7 +53,7 @@ def test_inverse_and_transform():
 
 
 def test_twist_matches_equation_1_to_first_order():
-    # PAPER.md eq. (1): a static point moves by -T - omega x P relative to the rig.
+    # docs/method.md eq. (1): a static point moves by -T - omega x P relative to the rig.
     twist = torch.tensor([[0.01, -0.02, 0.1, 0.002, -0.003, 0.001]], dtype=torch.float64)
     P = torch.tensor([[[1.0, -0.5, 5.0], [-2.0, 1.0, 10.0]]], dtype=torch.float64)
     moved = transform_points(twist_to_motion(twist), P)

@@ -1,4 +1,4 @@
-"""Tests of egorefine.motion.field: the motion field of PAPER.md equation (2)."""
+"""Tests of egorefine.motion.field: the motion field of docs/method.md equation (2)."""
 
 from __future__ import annotations
 
