@@ -1,6 +1,8 @@
 """Pictures of disparity maps: colour maps and the row-profile figure of the paper's argument.
 
-matplotlib is an optional dependency (the ``viz`` extra); colour maps use OpenCV only.
+matplotlib is an optional dependency (the ``viz`` extra); colour maps use OpenCV only. :func:`log_rerun` and
+:class:`RerunLogger` write a Rerun recording (``.rrd``: images, depth as a point cloud, poses, statistics per frame)
+with the optional Rerun SDK (the ``rerun`` extra), imported only when they are called.
 """
 
 from __future__ import annotations
@@ -11,7 +13,10 @@ import cv2
 import numpy as np
 import torch
 
-__all__ = ["colorize_disparity", "save_maps_figure", "save_row_figure", "save_trajectory_figure"]
+from ._rerun import RERUN_ENTITIES, RerunLogger, RerunNotInstalledError, log_rerun
+
+__all__ = ["RERUN_ENTITIES", "RerunLogger", "RerunNotInstalledError", "colorize_disparity", "log_rerun",
+           "save_maps_figure", "save_row_figure", "save_trajectory_figure"]
 
 #: colour of pixels without a value in every figure (mid grey: outside the turbo and magma colour maps)
 INVALID_GREY = 0.5
@@ -148,7 +153,7 @@ def save_maps_figure(
 def save_trajectory_figure(path: str | Path, trajectories: dict[str, torch.Tensor], title: str = "") -> Path:
     """Top view (x right, z forward, metres) of camera positions of several ``world_T_camera`` trajectories.
 
-    The camera frame is X right, Y down, Z forward (PAPER.md), so a rig moving on level ground stays in the x-z
+    The camera frame is X right, Y down, Z forward (docs/method.md), so a rig moving on level ground stays in the x-z
     plane; the first pose of each trajectory is marked with a circle.
 
     Args:

@@ -2,10 +2,12 @@
 
 ``egorefine demo`` renders the built-in synthetic sequence (the paper's rig), scores per-frame stereo and the
 refiner against its exact ground truth and draws pictures. ``egorefine run`` refines a recorded sequence
-(image folders with a calibration file, KITTI raw, KITTI odometry, EuRoC) and writes per-frame disparity, valid
-mask, confidence and preview files plus the trajectory in TUM and KITTI formats. ``egorefine eval`` scores
-disparity maps and trajectories against truth. ``egorefine info`` prints the processor, library versions and
-thread counts (float results differ between CPUs and thread counts: put it beside a bug report).
+(image folders with a calibration file, KITTI raw, KITTI odometry, EuRoC, ROS bags) and writes per-frame disparity,
+valid mask, confidence and preview files plus the trajectory in TUM and KITTI formats. ``egorefine eval`` scores
+disparity maps and trajectories against truth. ``egorefine run-many`` runs ``run`` on many recordings as Ray
+tasks, skipping those that finished (exit status 1 where one failed). ``egorefine info`` prints the processor,
+library versions and thread counts (float results differ between CPUs and thread counts: put it beside a bug
+report).
 
 Bad input (a missing file, a calibration that does not parse, too few frames, an output folder that already holds
 results) ends with one line ``egorefine <command>: error: ...`` on stderr and exit status 2; ``--debug`` shows the
@@ -27,6 +29,7 @@ from ._eval import _eval
 from ._eval import evaluate_disparity_folders as evaluate_disparity_folders
 from ._eval import evaluate_trajectory_files as evaluate_trajectory_files
 from ._run import _folder, _run, parse_outputs
+from ._run_many import _run_many
 from ._shared import _FRAME_DIRS
 
 __all__ = ["main", "parse_frame_range"]
@@ -40,6 +43,8 @@ _EXAMPLES = """examples:
   egorefine run raw/2011_09_26/2011_09_26_drive_0001_sync --layout kitti-raw --out out/
   egorefine run odometry/dataset/sequences/00 --layout kitti-odometry --frames 0:200 --out out/
   egorefine run V1_01_easy --layout euroc --max-disparity 48 --out out/
+  egorefine run rig.bag --layout rosbag --left-topic /cam0/image_raw --right-topic /cam1/image_raw --out out/
+  egorefine run-many recordings.txt --out out/ --ray-address 10.0.0.5:6379
   egorefine eval out/ truth/ --traj out/trajectory_tum.txt --gt-traj out/groundtruth_tum.txt --json scores.json
   egorefine info"""
 
@@ -76,6 +81,17 @@ def _at_least(minimum: int):
         return value
 
     return parse
+
+
+def _seconds(text: str) -> float:
+    """The ``--pair-tolerance`` type: a finite number of seconds, >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return value
 
 
 def _only_one(text: str) -> int:
@@ -201,16 +217,31 @@ def _build_parser() -> argparse.ArgumentParser:
                                                     "in --layout")
     run.add_argument("--layout", required=True, choices=LAYOUTS,
                      help="how INPUT is organised: left/right image folders with a calibration file, a KITTI raw "
-                          "drive, a KITTI odometry sequence or an EuRoC ASL folder")
+                          "drive, a KITTI odometry sequence, an EuRoC ASL folder or a ROS bag (a ROS 1 .bag file or "
+                          "a ROS 2 bag folder; with --left-topic and --right-topic)")
     run.add_argument("--out", required=True, metavar="DIR", help="output folder (refused if it holds results)")
     run.add_argument("--calib", default=None, metavar="FILE",
                      help="calibration file (OpenCV YAML/JSON, ROS camera_info YAML, KITTI calib); default: the "
-                          "one the layout keeps in INPUT")
+                          "one the layout keeps in INPUT (rosbag: the CameraInfo topics)")
     run.add_argument("--camera", default="grey", choices=CAMERAS,
                      help="which camera pair to read where the layout has both (KITTI: grey image_00/01 or image_0/1, "
                           "colour image_02/03 or image_2/3; read as grey either way)")
     run.add_argument("--frames", type=parse_frame_range, default=None, metavar="START:STOP[:STEP]",
                      help="frame range, 0-based, STOP excluded (default: all frames)")
+    rosbag = run.add_argument_group("rosbag layout", "the topics of a ROS bag (--layout rosbag only); needs pip "
+                                                     "install egorefine[rosbag]")
+    rosbag.add_argument("--left-topic", default=None, metavar="TOPIC",
+                        help="the left camera's sensor_msgs/Image or CompressedImage topic, e.g. /cam0/image_raw")
+    rosbag.add_argument("--right-topic", default=None, metavar="TOPIC", help="the right camera's image topic")
+    rosbag.add_argument("--left-info-topic", default=None, metavar="TOPIC",
+                        help="the left camera's CameraInfo topic (default: the image topic's sibling camera_info, "
+                             "e.g. /cam0/camera_info)")
+    rosbag.add_argument("--right-info-topic", default=None, metavar="TOPIC",
+                        help="the right camera's CameraInfo topic (default: the sibling camera_info)")
+    rosbag.add_argument("--pair-tolerance", type=_seconds, default=None, metavar="S",
+                        help="seconds within which left and right header stamps pair; frames without a partner are "
+                             "skipped and counted (default: 0.005, or half the median left frame interval where "
+                             "that is shorter)")
     _refiner_options(run, 64, fusion="kalman")
     run.add_argument("--matcher", default="sad", choices=_MATCHERS,
                      help="stereo cost (SAD on x-Sobel, ZNCC or census) and aggregation (box window, or +sgm for "
@@ -235,6 +266,10 @@ def _build_parser() -> argparse.ArgumentParser:
                      help="CPU threads for torch and the compiled kernels (default: torch's, the machine's cores)")
     run.add_argument("--overwrite", action="store_true",
                      help="replace the results of an earlier run in --out (its files are deleted first)")
+    run.add_argument("--rerun", default=None, metavar="FILE.rrd",
+                     help="also write a Rerun recording of every frame (left image, refined depth as a point cloud "
+                          "under the camera, validity, confidence, pose and path, statistics); open it with "
+                          "'rerun FILE.rrd'. Its folder must exist (or be --out); needs pip install egorefine[rerun]")
 
     ev = _command(
         sub, common, "eval", "score disparity maps and/or a trajectory against truth",
@@ -251,6 +286,36 @@ def _build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-time-difference", type=float, default=0.01, metavar="S",
                     help="seconds: TUM poses are paired by nearest timestamp within this (KITTI files by line)")
     ev.add_argument("--json", default=None, metavar="FILE", help="also write the metrics to this JSON file")
+
+    many = _command(
+        sub, common, "run-many", "refine many recordings, one Ray task each; resumable; a summary table",
+        "Run 'egorefine run' on every recording of LIST, each as a Ray task (on a local Ray instance, or on "
+        "the cluster at --ray-address), each into DIR/NAME (NAME: the last part of its path, made unique). "
+        "LIST is a text file, one recording per line: its path (relative to the list's folder), then its "
+        "'egorefine run' options, e.g. 'data/V1_01 --layout euroc --frames 0:100' ('#' comments and blank "
+        "lines are ignored); or a glob pattern of recordings (quote it), with --layout. A recording whose "
+        "DIR/NAME/run.json says it finished is skipped, one without is redone from the start. Prints a table "
+        "(frames, frames/s, stereo frames, status) and writes it as DIR/run-many.json. Exit status: 0 when "
+        "every recording is done or skipped, 1 when one failed (the others still run), 2 for bad input. "
+        "Needs pip install egorefine[ray].",
+        _run_many,
+    )
+    many.add_argument("list", metavar="LIST", help="a list file of recordings, or a glob pattern of recordings")
+    many.add_argument("--out", required=True, metavar="DIR", help="folder of the recordings' output folders")
+    many.add_argument("--layout", default=None, choices=LAYOUTS,
+                      help="--layout of every recording whose line gives none (needed with a glob pattern)")
+    many.add_argument("--run-options", default=None, metavar="'OPTIONS'",
+                      help="'egorefine run' options for every recording, in one quoted string written with '=', "
+                           "e.g. --run-options='--frames 0:100 --max-disparity 48'; a line's own options win")
+    many.add_argument("--cpus-per-task", type=_at_least(1), default=None, metavar="N",
+                      help="CPUs each recording's task reserves; the run's --threads defaults to it (default: the "
+                           "line's --threads, else 2)")
+    many.add_argument("--num-cpus", type=_at_least(1), default=None, metavar="N",
+                      help="CPUs of the local Ray instance (default: the machine's); not with --ray-address")
+    many.add_argument("--ray-address", default=None, metavar="HOST:PORT",
+                      help="run on the Ray cluster whose head is there (what 'ray start --head' prints; 'auto': "
+                           "the one started on this machine); outputs then go to DIR as the workers see it")
+    many.add_argument("--overwrite", action="store_true", help="redo the recordings that finished too")
 
     _command(sub, common, "info", "print the processor, library versions and thread counts",
              "Print the processor model, the versions of Python, torch, numpy, numba and OpenCV, their thread "

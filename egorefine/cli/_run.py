@@ -124,6 +124,11 @@ def _own_copy(x: torch.Tensor) -> np.ndarray:
     return x.detach().cpu().numpy().copy()
 
 
+def _copied(result):
+    """``result`` (a :class:`~egorefine.refine.RefinerOutput`) with copies of its tensors, for another thread."""
+    return type(result)(*(x.detach().clone() if isinstance(x, torch.Tensor) else x for x in result))
+
+
 def _device(name: str) -> torch.device:
     try:
         device = torch.device(name)
@@ -132,6 +137,30 @@ def _device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueRangeError(f"--device {name}: CUDA is not available on this machine (use --device cpu)")
     return device
+
+
+def _check_rerun(text: str | None, out: Path, overwrite: bool) -> Path | None:
+    """The ``--rerun`` file, checked before anything is read (None without the flag): the Rerun SDK is installed,
+    the file's folder exists (or is ``out``, made by the run) and may be written, and no file is there already
+    (unless ``overwrite``)."""
+    if text is None:
+        return None
+    from .._rerun import require_rerun
+
+    require_rerun()
+    path = Path(text)
+    folder = path.parent
+    if path.is_dir():
+        raise ValueRangeError(f"--rerun: {text!r} is a folder; expected a file name such as run.rrd")
+    if folder.resolve() != out.resolve():
+        if not folder.is_dir():
+            raise ValueRangeError(f"--rerun: the folder {str(folder)!r} of {text!r} does not exist")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise ValueRangeError(f"--rerun: the folder {str(folder)!r} of {text!r} is not writable")
+    if path.exists() and not overwrite:
+        raise ValueRangeError(f"--rerun: {text!r} already exists; pass --overwrite to replace it or choose another "
+                              "file")
+    return path
 
 
 def _check_output(out: Path, overwrite: bool) -> None:
@@ -218,14 +247,35 @@ def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dic
             "rectified_input": bool(rec.rectified_input),
         },
         "frames": frames,
+        **({"recording": rec.info} if getattr(rec, "info", None) else {}),
         "outputs": {
             **{name: text for name, text in per_frame.items() if name in args.outputs},
             "trajectory": files,
             "trajectory_frame": "world_T_camera of the rectified left camera; starts at the recording's first "
                                 "true pose where it has one, else at the identity",
+            **({"rerun": str(Path(args.rerun).resolve())} if getattr(args, "rerun", None) else {}),
         },
         "timings": timings,
     }
+
+
+_ROSBAG_FLAGS = ("left_topic", "right_topic", "left_info_topic", "right_info_topic", "pair_tolerance")
+
+
+def _layout_options(args: argparse.Namespace) -> dict:
+    """:func:`egorefine.data.open_recording`'s keyword arguments for the layout's own flags (the rosbag topics);
+    a flag given with a layout it does not belong to is an error."""
+    flag = {name: getattr(args, name, None) for name in _ROSBAG_FLAGS}  # absent from a namespace built elsewhere
+    if args.layout != "rosbag":
+        given = [name for name, value in flag.items() if value is not None]
+        if given:
+            flags = ", ".join("--" + name.replace("_", "-") for name in given)
+            raise ValueRangeError(f"{flags}: only --layout rosbag reads topics, got --layout {args.layout}")
+        return {}
+    if flag["left_topic"] is None or flag["right_topic"] is None:
+        raise ValueRangeError("--layout rosbag: needs --left-topic and --right-topic (the cameras' image topics)")
+    return dict(topics=(flag["left_topic"], flag["right_topic"]),
+                info_topics=(flag["left_info_topic"], flag["right_info_topic"]), pair_tolerance=flag["pair_tolerance"])
 
 
 def _refiner(args: argparse.Namespace):
@@ -239,7 +289,10 @@ def _refiner(args: argparse.Namespace):
                                                  fill=False if args.no_fill else None))
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, on_progress: Callable[[int, int], object] | None = None) -> int:
+    """``egorefine run`` from its parsed options; ``on_progress(done, total)``, where given, is called with
+    ``(0, T)`` once the recording is open and ``(t + 1, T)`` after each frame (``egorefine run-many`` reports to
+    its progress bar through it)."""
     from ..data import open_recording
 
     if args.threads is not None:
@@ -247,8 +300,13 @@ def _run(args: argparse.Namespace) -> int:
     device = _device(args.device)
     out = Path(args.out)
     _check_output(out, args.overwrite)  # before reading: a refusal costs nothing
+    rerun_path = _check_rerun(getattr(args, "rerun", None), out, args.overwrite)
     t_start = time.perf_counter()
-    rec = open_recording(args.input, args.layout, calib=args.calib, frames=args.frames, camera=args.camera)
+    rec = open_recording(args.input, args.layout, calib=args.calib, frames=args.frames, camera=args.camera,
+                         **_layout_options(args))
+    if not args.quiet:
+        for note in getattr(rec, "notes", ()):  # e.g. a bag's frames left without a partner
+            print(f"egorefine run: note: {note}", file=sys.stderr)
     T = len(rec)
     if T < 2:
         raise ValueRangeError(f"{args.input}: {T} frame(s) in the chosen range; refining needs at least 2 "
@@ -264,6 +322,8 @@ def _run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name in args.outputs:
         (out / name).mkdir(exist_ok=True)
+    if rerun_path is not None:
+        rerun_path.unlink(missing_ok=True)  # an earlier run's (--overwrite): deleted with its other results
 
     world_T_camera = [torch.eye(4, dtype=torch.float64) if rec.poses is None else rec.poses[0].double().cpu()]
     refine_ms, stereo_frames, motion_failed = [], 0, 0
@@ -271,7 +331,19 @@ def _run(args: argparse.Namespace) -> int:
     write = functools.partial(_write_frame, out, outputs=args.outputs, fmt=args.format,
                               max_disparity=args.max_disparity)
     writer = _Writer(_WRITER_THREADS, _WRITER_DEPTH)
+    # The Rerun recording is logged on a thread of its own, one frame after the other (the trajectory grows in
+    # order), from copies of the frame's tensors (the refiner may reuse them). Where the trajectory starts at the
+    # identity, the world is the first camera's frame (right, down, forward); a true first pose puts it in the
+    # recording's world, whose axes the viewer chooses.
+    rerun = rerun_writer = None
+    if rerun_path is not None:
+        from .._rerun import RerunLogger
+
+        rerun = RerunLogger(rerun_path, world_xyz="RDF" if rec.poses is None else None)
+        rerun_writer = _Writer(1, _WRITER_DEPTH)
     t_loop = time.perf_counter()
+    if on_progress is not None:
+        on_progress(0, T)
     try:
         with torch.no_grad():
             for t in progress(range(T), total=T, desc="egorefine run", enabled=not args.quiet):
@@ -286,13 +358,25 @@ def _run(args: argparse.Namespace) -> int:
                     world_T_camera.append(world_T_camera[-1] @ torch.linalg.inv(result.motion[0].double().cpu()))
                 stereo_frames += bool(result.stereo_ran)
                 motion_failed += int(not bool(result.motion_ok[0]))
+                if rerun is not None:
+                    rerun_writer.submit(functools.partial(
+                        rerun.log_frame, t, left.clone(), _copied(result), K, baseline, world_T_camera[-1],
+                        stamp=None if rec.timestamps is None else float(rec.timestamps[t])))
                 if args.outputs:
                     confidence = _own_copy(result.confidence[0, 0]) if "confidence" in args.outputs else None
                     writer.submit(functools.partial(write, rec.names[t], disparity=_own_copy(result.disparity[0, 0]),
                                                     valid=_own_copy(result.valid[0, 0]), confidence=confidence))
+                if on_progress is not None:
+                    on_progress(t + 1, T)
         writer.close()  # the frames still queued are written (or their error raised) before anything else
+        if rerun is not None:
+            rerun_writer.close()
+            rerun.close()  # flushed, finished and renamed into place
     finally:
         writer.close(drop=True)
+        if rerun is not None:
+            rerun_writer.close(drop=True)
+            rerun.discard()  # on an error: the unfinished recording is deleted (after close: nothing)
     loop_s = time.perf_counter() - t_loop
 
     poses = _nearest_rigid(torch.stack(world_T_camera))
@@ -315,6 +399,9 @@ def _run(args: argparse.Namespace) -> int:
                 "with refining; writer_wait_s: time refining waited for the writer; the first frame includes "
                 "numba's compilation of the kernels",
     }
+    if rerun_writer is not None:  # logging one frame to --rerun on its thread; the refining's wait for that thread
+        timings["rerun_ms_mean"] = float(np.mean(rerun_writer.ms)) if rerun_writer.ms else 0.0
+        timings["rerun_wait_s"] = rerun_writer.wait_s
     frames = {"count": T, "first": rec.names[0], "last": rec.names[-1], "stereo_ran": stereo_frames,
               "motion_failed": motion_failed, "has_groundtruth_poses": rec.poses is not None}
     report = _run_report(args, rec, device, frames, files, timings)

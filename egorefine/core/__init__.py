@@ -20,9 +20,11 @@ from .errors import (
     DTypeError,
     EgorefineError,
     MissingDataError,
+    MissingExtraError,
     ShapeError,
     StateError,
     ValueRangeError,
+    require_extra,
 )
 from .image import to_grey
 from .machine import cpu_model, machine_info
@@ -46,6 +48,7 @@ __all__ = [
     "DTypeError",
     "EgorefineError",
     "MissingDataError",
+    "MissingExtraError",
     "ShapeError",
     "StateError",
     "ValueRangeError",
@@ -53,6 +56,7 @@ __all__ = [
     "eps_like",
     "machine_info",
     "progress",
+    "require_extra",
     "safe_div",
     "to_grey",
     "use_compiled",

@@ -16,6 +16,8 @@ __all__ = [
     "StateError",
     "DataError",
     "MissingDataError",
+    "MissingExtraError",
+    "require_extra",
 ]
 
 
@@ -118,3 +120,43 @@ class MissingDataError(DataError, FileNotFoundError):
         ...     type(err).__name__
         'MissingDataError'
     """
+
+
+class MissingExtraError(EgorefineError, ImportError):
+    """An optional dependency that one feature needs is not installed; the message names the extra that brings it
+    (``pip install egorefine[NAME]``). An ``ImportError`` too, so ``except ImportError`` still catches it.
+
+    Example:
+        >>> issubclass(MissingExtraError, ImportError)
+        True
+    """
+
+
+def require_extra(module: str, extra: str, what: str, error: type[MissingExtraError] = MissingExtraError):
+    """Import ``module`` for a feature of the optional extra ``extra``, or raise ``error`` in one line naming the
+    ``pip install`` that brings it: the one rule every optional feature (ROS bags, Rerun, Ray) imports by.
+
+    Args:
+        module: the module to import, e.g. ``"rosbags.highlevel"``.
+        extra: the extra of egorefine's ``pyproject.toml`` that installs it, e.g. ``"rosbag"``.
+        what: what is missing, in words, e.g. ``"rosbags (which reads ROS bags)"``.
+        error: the :class:`MissingExtraError` subclass to raise.
+
+    Returns:
+        the imported module.
+
+    Example:
+        >>> require_extra("json", "none", "the json module").__name__
+        'json'
+        >>> try:
+        ...     require_extra("no_such_module_here", "demo", "a demo package")
+        ... except MissingExtraError as err:
+        ...     print(err)
+        a demo package is not installed: pip install egorefine[demo]
+    """
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise error(f"{what} is not installed: pip install egorefine[{extra}]") from None

@@ -16,6 +16,7 @@ from .results import (
     write_mask,
     write_preview,
 )
+from .rosbag import ROSBAG_ENCODINGS, RosbagNotInstalledError, RosbagRecording, open_rosbag
 from .synthetic import MOTIONS, PRESETS, SCENES, RigPreset, StereoSequence, render_sequence
 from .trajectory import read_trajectory, write_kitti_poses, write_tum
 
@@ -27,17 +28,21 @@ __all__ = [
     "IMAGING",
     "MOTIONS",
     "PRESETS",
+    "ROSBAG_ENCODINGS",
     "SCENES",
     "EurocSequence",
     "Imaging",
     "ImageFolderSequence",
     "RigPreset",
+    "RosbagNotInstalledError",
+    "RosbagRecording",
     "StereoCalibration",
     "StereoRecording",
     "atomic_path",
     "StereoSequence",
     "load_euroc",
     "open_recording",
+    "open_rosbag",
     "oxts_to_poses",
     "read_calibration",
     "read_euroc_sensor",

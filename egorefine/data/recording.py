@@ -26,6 +26,10 @@ Layouts (:data:`LAYOUTS`):
 ``euroc``
     EuRoC MAV's ASL layout (``mav0/cam0``, ``mav0/cam1``, ground truth optional; ``path`` is the folder holding
     ``mav0`` or ``mav0`` itself): see :func:`egorefine.data.load_euroc`. Grey cameras only.
+``rosbag``
+    A ROS 1 ``.bag`` file or a ROS 2 bag folder (sqlite3 or mcap storage): two image topics (``topics``), paired
+    by header stamp, calibrated from their CameraInfo topics or ``calib``; see :func:`egorefine.data.open_rosbag`.
+    Needs ``pip install egorefine[rosbag]``.
 
 Every unrectified layout goes through :func:`egorefine.data.rectify_maps`.
 """
@@ -41,14 +45,14 @@ import numpy as np
 import torch
 
 from ..core import DataError, MissingDataError, ShapeError, ValueRangeError, check_choice
-from .calib import _KITTI_PAIRS, CAMERAS, _read_kitti_txt, _remap, read_calibration, rectify_maps
+from .calib import _KITTI_PAIRS, CAMERAS, StereoCalibration, _read_kitti_txt, _remap, read_calibration, rectify_maps
 from .euroc import _index_euroc, _rectified_poses
 from .folder import read_grey
 
 __all__ = ["LAYOUTS", "StereoRecording", "open_recording", "oxts_to_poses"]
 
 #: The folder layouts :func:`open_recording` reads.
-LAYOUTS = ("folders", "kitti-raw", "kitti-odometry", "euroc")
+LAYOUTS = ("folders", "kitti-raw", "kitti-odometry", "euroc", "rosbag")
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 _FOLDER_PAIRS = {"grey": (("left", "right"), ("cam0", "cam1"), ("image_0", "image_1")),
                  "colour": (("left", "right"), ("cam0", "cam1"), ("image_2", "image_3"))}
@@ -131,9 +135,13 @@ class StereoRecording:
                 f"poses={self.poses is not None})")
 
     def _read(self, path: Path, camera: int) -> torch.Tensor:
-        img = read_grey(path).numpy()[0, 0]
+        return self._rectified(read_grey(path).numpy()[0, 0], path, camera)
+
+    def _rectified(self, img: np.ndarray, where: object, camera: int) -> torch.Tensor:
+        """A frame ``(H, W)`` read from ``where`` (named in the error), checked for size and rectified by
+        ``camera``'s maps (0: left, 1: right), as a ``(1, 1, H, W)`` tensor."""
         if img.shape != self.image_size:
-            raise DataError(f"path: {path} is {img.shape[1]}x{img.shape[0]} (W x H), expected "
+            raise DataError(f"path: {where} is {img.shape[1]}x{img.shape[0]} (W x H), expected "
                             f"{self.image_size[1]}x{self.image_size[0]} as the calibration and first frame")
         if self._maps is not None:
             img = _remap(img, self._maps[camera])
@@ -276,6 +284,17 @@ def _kitti_timestamps(path: Path) -> np.ndarray:
     return ns / 1e9
 
 
+def _fit_calibration(cal: StereoCalibration, size: tuple[int, int], first: object) -> StereoCalibration:
+    """``cal`` for images of ``size`` ``(H, W)``: its size where it names none; a DataError naming ``first`` (the
+    first frame) where it names another."""
+    if cal.image_size is None:
+        return replace(cal, image_size=size)
+    if cal.image_size != size:
+        raise DataError(f"calib: {cal.source} is for {cal.image_size[1]}x{cal.image_size[0]} images, "
+                        f"{first} is {size[1]}x{size[0]} (W x H)")
+    return cal
+
+
 def _open_folders(path: Path, calib: str | os.PathLike | None, camera: str) -> dict:
     for a, b in _FOLDER_PAIRS[camera]:
         if (path / a).is_dir() or (path / b).is_dir():
@@ -284,13 +303,8 @@ def _open_folders(path: Path, calib: str | os.PathLike | None, camera: str) -> d
     else:
         raise MissingDataError(f"path: {path} holds none of the folder pairs "
                                f"{', '.join(f'{a}/ + {b}/' for a, b in _FOLDER_PAIRS[camera])} (camera={camera!r})")
-    cal = read_calibration(path if calib is None else calib, camera)
     size = _size_of(left[0])
-    if cal.image_size is None:
-        cal = replace(cal, image_size=size)
-    elif cal.image_size != size:
-        raise DataError(f"calib: {cal.source} is for {cal.image_size[1]}x{cal.image_size[0]} images, "
-                        f"{left[0]} is {size[1]}x{size[0]} (W x H)")
+    cal = _fit_calibration(read_calibration(path if calib is None else calib, camera), size, left[0])
     maps, K, baseline = rectify_maps(cal)
     return dict(left_files=left, right_files=right, K=K, baseline=baseline, image_size=size, maps=maps,
                 names=[f.stem for f in left], timestamps=_times(path / "times.txt", len(left)))
@@ -379,7 +393,9 @@ _OPENERS = {"folders": _open_folders, "kitti-raw": _open_kitti_raw, "kitti-odome
 
 
 def open_recording(path: str | os.PathLike, layout: str, calib: str | os.PathLike | None = None,
-                   frames: slice | None = None, camera: str = "grey") -> StereoRecording:
+                   frames: slice | None = None, camera: str = "grey", *, topics: tuple[str, str] | None = None,
+                   info_topics: tuple[str | None, str | None] | None = None,
+                   pair_tolerance: float | None = None) -> StereoRecording:
     """Open a stereo recording stored in one of :data:`LAYOUTS`, rectified where the layout is not.
 
     The file lists, calibration, time stamps and poses are read now, the first pair too (to catch a bad file
@@ -388,21 +404,28 @@ def open_recording(path: str | os.PathLike, layout: str, calib: str | os.PathLik
     Args:
         path: the recording's folder (see the module's description for each layout).
         layout: one of :data:`LAYOUTS`.
-        calib: ``folders`` only: the calibration file (or its folder); default: found in ``path``. The other
-            layouts read their own calibration files.
+        calib: ``folders`` and ``rosbag`` only: the calibration file (or its folder); default: found in ``path``
+            (``folders``) or read from the bag's CameraInfo topics (``rosbag``). The other layouts read their own
+            calibration files.
         frames: which frames to keep, e.g. ``slice(100, 200)`` or ``slice(None, None, 2)``; default all.
         camera: ``"grey"`` or ``"colour"``: which KITTI camera pair to read (the kitti layouts, ``folders`` with
             KITTI folder names or a KITTI calibration file); colour frames are turned grey. EuRoC accepts grey
             only. Default grey, KITTI's reference camera 0.
+        topics: ``rosbag`` only, and needed there: the ``(left, right)`` image topics.
+        info_topics: ``rosbag`` only: the ``(left, right)`` CameraInfo topics (either may be None); default: each
+            image topic's sibling ``camera_info``.
+        pair_tolerance: ``rosbag`` only: seconds within which left and right header stamps pair; default: 0.005 s
+            or half the median left frame interval, the shorter.
 
     Returns:
-        :class:`StereoRecording`.
+        :class:`StereoRecording` (for ``rosbag`` a :class:`~egorefine.data.RosbagRecording`).
 
     Raises:
         MissingDataError: ``path``, an image folder or a needed calibration file is absent.
         DataError: left/right frame counts differ, a file does not decode or parse or lacks a field, time stamps
             or poses do not match the frames, ``frames`` selects none.
-        ValueRangeError: an unknown ``layout`` or ``camera``, or ``calib`` with a layout other than folders.
+        ValueRangeError: an unknown ``layout`` or ``camera``, ``calib`` with a layout that reads its own
+            calibration, the ``rosbag`` options with another layout or ``rosbag`` without ``topics``.
 
     Example:
         >>> import tempfile, pathlib, cv2, numpy as np
@@ -417,9 +440,21 @@ def open_recording(path: str | os.PathLike, layout: str, calib: str | os.PathLik
     """
     check_choice(layout, LAYOUTS, "layout")
     check_choice(camera, CAMERAS, "camera")
-    if calib is not None and layout != "folders":
+    if calib is not None and layout not in ("folders", "rosbag"):
         raise ValueRangeError(f"calib: the {layout} layout reads its own calibration files; pass calib only with "
-                              "layout='folders'")
+                              "layout='folders' or 'rosbag'")
+    if layout == "rosbag":
+        if topics is None or len(topics) != 2:
+            raise ValueRangeError(f"topics: the rosbag layout needs the (left, right) image topics, got {topics!r}")
+        from .rosbag import open_rosbag
+
+        left_info, right_info = info_topics if info_topics is not None else (None, None)
+        return open_rosbag(path, topics[0], topics[1], calib=calib, camera=camera, left_info_topic=left_info,
+                           right_info_topic=right_info, pair_tolerance=pair_tolerance, frames=frames)
+    for name, value in (("topics", topics), ("info_topics", info_topics), ("pair_tolerance", pair_tolerance)):
+        if value is not None:
+            raise ValueRangeError(f"{name}: only the rosbag layout reads topics; got {value!r} with "
+                                  f"layout={layout!r}")
     if frames is not None and not isinstance(frames, slice):
         raise ValueRangeError(f"frames: expected a slice or None, got {type(frames).__name__}")
     path = Path(path)

@@ -182,7 +182,7 @@ def test_unknown_layout_and_options(tmp_path) -> None:
         open_recording(tmp_path, "kitti-raw", calib=tmp_path / "calib.yaml")
     with pytest.raises(ValueRangeError, match="frames: expected a slice"):
         open_recording(tmp_path, "folders", frames=3)
-    assert LAYOUTS == ("folders", "kitti-raw", "kitti-odometry", "euroc")
+    assert LAYOUTS == ("folders", "kitti-raw", "kitti-odometry", "euroc", "rosbag")
 
 
 def test_missing_folders(tmp_path) -> None:
