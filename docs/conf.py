@@ -2,7 +2,8 @@
 
 Build: ``python -m sphinx -W --keep-going -b html docs docs/_build/html`` (``tests/test_docs.py`` runs it).
 The API reference is written by autodoc from the docstrings (Google style, read by napoleon); the other pages are
-Markdown, read by myst-parser.
+Markdown, and the notebooks of ``notebooks/`` (``docs/notebooks`` links to it) are executed into their pages, all read
+by myst-nb.
 """
 
 from __future__ import annotations
@@ -34,12 +35,12 @@ extensions = [
     "sphinx.ext.napoleon",
     "sphinx.ext.mathjax",
     "sphinx.ext.viewcode",
-    "myst_parser",
+    "myst_nb",
 ]
 
-source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
+source_suffix = {".rst": "restructuredtext", ".md": "myst-nb", ".ipynb": "myst-nb"}
 root_doc = "index"
-exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
+exclude_patterns = ["_build", "Thumbs.db", ".DS_Store", "**/.ipynb_checkpoints", "figures/*.py"]
 
 # -- autodoc / napoleon ------------------------------------------------------------------------------------------
 # `:members:` on a module with `__all__` documents exactly the names in `__all__` (imported ones included), in the
@@ -76,6 +77,15 @@ nitpick_ignore_regex = [
 # -- MyST ----------------------------------------------------------------------------------------------------------
 myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
 myst_heading_anchors = 3
+
+# -- Notebooks -----------------------------------------------------------------------------------------------------
+# The notebooks are stored without outputs and run at every build (they use small data, offline), so a page shows
+# what the code gives today; an error in a cell fails the build, as a warning does.
+nb_execution_mode = "force"
+nb_execution_timeout = 600
+nb_execution_raise_on_error = True
+nb_execution_show_tb = True
+nb_merge_streams = True
 
 # -- HTML ----------------------------------------------------------------------------------------------------------
 try:

@@ -1,7 +1,9 @@
-"""The documentation site builds without a warning, and every public name has an entry in it.
+"""The documentation site builds without a warning, every public name has an entry in it, and the notebooks run.
 
 The build is the one the docs describe (``python -m sphinx -W --keep-going -b html docs docs/_build/html``), run
-once into a temporary folder; its objects inventory (``objects.inv``) lists every documented name.
+once into a temporary folder; its objects inventory (``objects.inv``) lists every documented name. The build executes
+every notebook of ``notebooks/`` into its page (myst-nb; an error in a cell fails it), so this is also where the
+notebooks are tested.
 """
 
 from __future__ import annotations
@@ -17,9 +19,11 @@ import pytest
 
 pytest.importorskip("sphinx")
 pytest.importorskip("myst_parser")
+pytest.importorskip("myst_nb")
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
+NOTEBOOKS = sorted(p.stem for p in (ROOT / "notebooks").glob("*.ipynb"))
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +76,20 @@ def test_docs_build_without_warnings(built):
     assert (built / "index.html").is_file()
     for page in ("getting-started", "method", "architecture", "decisions", "benchmarks", "api/index"):
         assert (built / f"{page}.html").is_file(), page
+
+
+@pytest.mark.parametrize("name", NOTEBOOKS)
+def test_notebook_pages_hold_their_outputs(built, name):
+    # stored without outputs, executed by the build: a page with outputs and figures is a notebook that ran
+    page = (built / "notebooks" / f"{name}.html").read_text()
+    assert page.count("cell_output") >= 2, name
+    assert "<img " in page, f"{name}: no figure among its outputs"
+    assert "Traceback" not in page, name
+
+
+def test_landing_page_shows_the_picture_and_the_example(built):
+    page = (built / "index.html").read_text()
+    assert "demo_maps" in page and "EgoMotionRefiner" in page and "pip install" in page
 
 
 def test_every_public_name_has_an_entry(built):

@@ -5,7 +5,7 @@ surface and depth is finite everywhere). A rectified stereo rig moves along a sm
 trajectory through it. Both images of every pair are rendered from the same Lambertian surfaces, so the
 pair is physically consistent and disparity, depth and occlusion come exactly from the geometry.
 
-Conventions (PAPER.md): camera frame X right, Y down, Z forward; the world frame is the first nominal
+Conventions (docs/method.md): camera frame X right, Y down, Z forward; the world frame is the first nominal
 camera frame (Y down, Z along the direction of travel); disparity ``d = x_left - x_right = f B / Z``;
 ``poses[t]`` is ``world_T_camera`` of the left camera, ``motions[t] = camera_t_T_camera_{t-1}``.
 
