@@ -43,6 +43,7 @@ bench: $(VENV)/.installed-dev
 	$(PY) benchmarks/refine.py
 	$(PY) benchmarks/euroc_static.py
 	$(PY) benchmarks/autograd.py
+	$(PY) benchmarks/plots.py
 
 clean:
 	rm -rf $(VENV) results .pytest_cache docs/_build
