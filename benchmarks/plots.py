@@ -352,28 +352,26 @@ def running_mean(values: list[float], window: int) -> list[float]:
     return out
 
 
+def loss_curve(ax, values: list[float], parts: int, color: str, alpha: float, label: str, xlabel: str) -> None:
+    """``values`` per step, faint, with their running mean over a ``parts``-th of the steps on top."""
+    window = max(1, len(values) // parts)
+    steps = range(1, len(values) + 1)
+    ax.plot(steps, values, color=color, alpha=alpha, lw=0.7)
+    ax.plot(steps, running_mean(values, window), color=color, label=f"{label} (mean of {window})")
+    ax.set_xlabel(xlabel, color=color)
+    ax.tick_params(axis="x", colors=color)
+
+
 def plot_learning(payload: dict, path: Path) -> None:
     """The two training stages' loss per step, and EPE per held-back sequence before and after training."""
     fig, axes = plt.subplots(1, 2, figsize=SIZE)
     ax = axes[0]
     fit = payload.get("fit_losses") or []
+    top = ax
     if fit:
-        window = max(1, len(fit) // 20)
-        ax.plot(range(1, len(fit) + 1), fit, color=COLORS[0], alpha=0.25, lw=0.6)
-        ax.plot(range(1, len(fit) + 1), running_mean(fit, window), color=COLORS[0],
-                label=f"stage 1: correction net, L1 to truth (mean of {window})")
-        ax.set_xlabel("stage 1 step", color=COLORS[0])
-        ax.tick_params(axis="x", colors=COLORS[0])
+        loss_curve(ax, fit, 20, COLORS[0], 0.25, "stage 1: correction net, L1 to truth", "stage 1 step")
         top = ax.twiny()
-    else:
-        top = ax
-    loop = payload["losses"]
-    window = max(1, len(loop) // 10)
-    top.plot(range(1, len(loop) + 1), loop, color=COLORS[1], alpha=0.35, lw=0.8)
-    top.plot(range(1, len(loop) + 1), running_mean(loop, window), color=COLORS[1],
-             label=f"stage 2: loss through the loop (mean of {window})")
-    top.set_xlabel("stage 2 step", color=COLORS[1])
-    top.tick_params(axis="x", colors=COLORS[1])
+    loss_curve(top, payload["losses"], 10, COLORS[1], 0.35, "stage 2: loss through the loop", "stage 2 step")
     ax.set_ylabel("loss (px)")
     ax.grid(True, alpha=0.3)
     handles = [h for a in dict.fromkeys([ax, top]) for h in a.get_legend_handles_labels()[0]]
