@@ -17,11 +17,12 @@ Steps of :func:`refine_motion_direct` (one batch of items, fixed shapes):
 1. **Pixels**: in each cell of a grid over the previous image, the ``per_cell`` pixels of largest gradient magnitude
    with a valid disparity away from depth edges (a well-spread subset: texture carries the photometric signal, flat
    regions none), both images slightly blurred first.
-2. **Coarse to fine** over an image pyramid (2x2 averages): at each level a fixed number of Gauss-Newton steps on
-   the 8 unknowns (the twist of a left-multiplied SE(3) increment, ``a``, ``b``), each step Levenberg-damped and
-   taken per item only where it lowers that item's robust cost (Huber on intensity residuals; otherwise the item's
-   damping grows). Weights: the Huber weight times ``1 / (sigma^2 + (g . du/drho)^2 var_rho)``, the residual's
-   variance from image noise ``sigma`` and from the disparity's own variance moved through the warp.
+2. **Coarse to fine** over the tracker's image pyramid (:func:`~egorefine.features.build_pyramid`): at each level a
+   fixed number of Gauss-Newton steps on the 8 unknowns (the twist of a left-multiplied SE(3) increment, ``a``,
+   ``b``), each step Levenberg-damped and taken per item only where it lowers that item's robust cost (Huber on
+   intensity residuals; otherwise the item's damping grows). Weights: the Huber weight times
+   ``1 / (sigma^2 + (g . du/drho)^2 var_rho)``, the residual's variance from image noise ``sigma`` and from the
+   disparity's own variance moved through the warp.
 3. **Acceptance**: the refinement is kept for an item only if its cost at the finest level is below the cost of the
    feature solve's motion there (with its best brightness model); otherwise the input motion comes back unchanged,
    flagged. Too few usable pixels (a black, overexposed or textureless frame, a disparity map with no valid pixel)
@@ -38,11 +39,12 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d
+from kornia.filters import gaussian_blur2d, spatial_gradient
 
-from ..core import ValueRangeError, check_float, check_positive, check_shape, eps_like
+from ..core import ValueRangeError, check_float, check_positive, check_shape, eps_like, to_grey
+from ..features import build_pyramid
 from ..geometry import se3_exp
-from .robust import robust_weight
+from .robust import robust_loss, robust_weight
 
 __all__ = ["DirectMotion", "refine_motion_direct", "DIRECT_STATUS"]
 
@@ -80,22 +82,6 @@ class DirectMotion(NamedTuple):
     num_pixels: torch.Tensor
 
 
-def _pyramid(image: torch.Tensor, levels: int) -> list[torch.Tensor]:
-    """``levels`` images, full size first, each the 2x2 average of the one before."""
-    out = [image]
-    for _ in range(levels - 1):
-        out.append(F.avg_pool2d(out[-1], 2))
-    return out
-
-
-def _gradients(image: torch.Tensor) -> torch.Tensor:
-    """``(B, 2, H, W)`` central differences ``(d/dx, d/dy)`` of ``(B, 1, H, W)``, one-sided at the borders."""
-    pad = F.pad(image, (1, 1, 1, 1), mode="replicate")
-    gx = 0.5 * (pad[..., 1:-1, 2:] - pad[..., 1:-1, :-2])
-    gy = 0.5 * (pad[..., 2:, 1:-1] - pad[..., :-2, 1:-1])
-    return torch.cat([gx, gy], dim=1)
-
-
 def _sample(image: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
     """Bilinear samples ``(B, C, N)`` of ``image`` ``(B, C, H, W)`` at pixel positions ``xy`` ``(B, N, 2)``."""
     h, w = image.shape[-2:]
@@ -107,7 +93,7 @@ def _select_pixels(grey: torch.Tensor, disparity: torch.Tensor, valid: torch.Ten
                    min_gradient: float, max_step: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 1: ``(xy (B, N, 2) float, usable (B, N) bool)``, ``per_cell`` pixels of largest gradient per cell."""
     b, _, h, w = grey.shape
-    g = _gradients(grey).norm(dim=1, keepdim=True)
+    g = spatial_gradient(grey, mode="diff").norm(dim=2)
     # not beside a depth edge: there the intensity mixes two surfaces that move apart (and one may be hidden)
     known = torch.where(valid, disparity, torch.full_like(disparity, float("nan")))
     hi = F.max_pool2d(torch.nan_to_num(known, nan=-1e9), 5, 1, 2)
@@ -127,13 +113,9 @@ def _select_pixels(grey: torch.Tensor, disparity: torch.Tensor, valid: torch.Ten
 
 
 def _scaled_intrinsics(K: torch.Tensor, level: int) -> torch.Tensor:
-    """``K`` of pyramid level ``level``: pixel centres of a 2x2 average sit at ``(x + 0.5) / 2 - 0.5``."""
-    s = 2.0**-level
+    """``K`` of pyramid level ``level``: :func:`~egorefine.features.build_pyramid` puts pixel ``x`` at ``x / 2^l``."""
     Kl = K.clone()
-    Kl[:, 0, 0] = K[:, 0, 0] * s
-    Kl[:, 1, 1] = K[:, 1, 1] * s
-    Kl[:, 0, 2] = (K[:, 0, 2] + 0.5) * s - 0.5
-    Kl[:, 1, 2] = (K[:, 1, 2] + 0.5) * s - 0.5
+    Kl[:, :2] = K[:, :2] * 2.0**-level
     return Kl
 
 
@@ -189,8 +171,6 @@ def _weights(r: torch.Tensor, geometric: torch.Tensor, ok: torch.Tensor, sigma: 
 
 def _cost(r: torch.Tensor, geometric: torch.Tensor, ok: torch.Tensor, sigma: float) -> torch.Tensor:
     """``(B,)`` mean Huber cost of the normalised residuals over the usable pixels (inf with none)."""
-    from .robust import robust_loss
-
     std = (sigma * sigma + geometric).sqrt()
     loss = torch.where(ok, robust_loss((r / std).abs(), _HUBER, 1.0), torch.zeros_like(r))
     n = ok.sum(-1)
@@ -236,8 +216,8 @@ def refine_motion_direct(
     better (``status``).
 
     Args:
-        prev_image, image: ``(B, 1, H, W)`` grey (or ``(B, 3, H, W)`` colour, averaged) left images of frames
-            ``t-1`` and ``t`` in ``[0, 1]``.
+        prev_image, image: ``(B, 1, H, W)`` grey (or ``(B, 3, H, W)`` colour, made grey by ``to_grey``) left images
+            of frames ``t-1`` and ``t`` in ``[0, 1]``.
         prev_disparity: ``(B, 1, H, W)`` disparity of frame ``t-1`` in pixels (<= 0: none).
         K: ``(B, 3, 3)`` rectified intrinsics; ``baseline``: ``(B,)`` metres.
         motion: ``(B, 4, 4)`` ``camera_t_T_camera_{t-1}``, the starting motion (the feature solve's).
@@ -282,8 +262,8 @@ def refine_motion_direct(
         raise ValueRangeError(f"refine_motion_direct: expected levels >= 1, iterations >= 0, cell >= 2, per_cell >= 1;"
                               f" got {levels}, {iterations}, {cell}, {per_cell}")
     dtype = prev_disparity.dtype
-    prev_grey = prev_image.mean(1, keepdim=True).to(dtype)
-    grey = image.mean(1, keepdim=True).to(dtype)
+    prev_grey = to_grey(prev_image).to(dtype)
+    grey = to_grey(image).to(dtype)
     if blur > 0:  # band-limited images: bilinear samples between pixels are then close to the true intensities
         k = 2 * int(math.ceil(2 * blur)) + 1
         prev_grey = gaussian_blur2d(prev_grey, (k, k), (blur, blur), border_type="replicate")
@@ -309,13 +289,12 @@ def refine_motion_direct(
     rays = torch.linalg.solve(K[:, None], torch.cat([xy, ones], -1)[..., None])[..., 0]  # (B, N, 3)
 
     # 2. coarse to fine: at each level the template intensities at the pixels (scaled), the new image and gradients
-    pyr_prev, pyr = _pyramid(prev_grey, levels), _pyramid(grey, levels)
+    pyr_prev, pyr = build_pyramid(prev_grey, levels), build_pyramid(grey, levels)
     state_levels = []
     for level in range(levels):
-        s = 2.0**-level
-        xy_l = (xy + 0.5) * s - 0.5
-        template = _sample(pyr_prev[level], xy_l)[:, 0]
-        state_levels.append({"K": _scaled_intrinsics(K, level), "image": pyr[level], "grads": _gradients(pyr[level]),
+        template = _sample(pyr_prev[level], xy * 2.0**-level)[:, 0]
+        grads = spatial_gradient(pyr[level], mode="diff")[:, 0]  # (B, 2, H, W): d/dx, d/dy
+        state_levels.append({"K": _scaled_intrinsics(K, level), "image": pyr[level], "grads": grads,
                              "template": template})
     state = (rays, rho, var_rho, usable)
     gain, offset = torch.ones(b, dtype=dtype, device=d.device), torch.zeros(b, dtype=dtype, device=d.device)

@@ -84,9 +84,11 @@ def test_batch_items_equal_alone(ideal):
                                 K.expand(2, 3, 3), b.expand(2), starts)
     for i, (p, n, d) in enumerate(((prev, img, disp), (prev2, img2, disp2))):
         alone = refine_motion_direct(p, n, d, K, b, starts[i : i + 1])
-        # the same float32 operations per item; batched matmuls may sum in another order: 1e-5 m is far below the
-        # 1e-4 m steps a real change makes here
-        assert torch.allclose(both.motion[i], alone.motion[0], atol=1e-5)
+        # the same float32 steps per item, but batched reductions may sum in another order (other CPUs, SIMD widths),
+        # which can tip an accept/reject test and take a slightly different path to the same minimum: 0.1 mm (and
+        # 1e-4 in the rotation entries) stays far below what mixing the items moves (the two frames' motions differ
+        # by millimetres, and each starts 7 mm off)
+        assert torch.allclose(both.motion[i], alone.motion[0], atol=1e-4)
         assert both.status[i] == alone.status[0]
 
 
