@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core.check import check_shape
+from ..core import check_shape, to_grey
 
 __all__ = ["BM_BLOCK", "SGBM_BLOCK", "stereo_bm", "stereo_sgbm", "compute", "match_opencv"]
 
@@ -59,8 +59,9 @@ def compute(matcher, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, n
 def match_opencv(matcher, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``matcher`` (:func:`stereo_bm`, :func:`stereo_sgbm`) on a batch of egorefine images, item by item.
 
-    The images are turned into what OpenCV users feed it: grey (the channel mean of colour images) as uint8, 255 times
-    the value in ``[0, 1]``, rounded.
+    The images are turned into what OpenCV users feed it: grey (colour through the luma weights,
+    :func:`egorefine.core.to_grey`, as OpenCV's ``cvtColor`` does) as uint8, 255 times the value in ``[0, 1]``,
+    rounded.
 
     Args:
         matcher: an OpenCV stereo matcher (``cv2.StereoBM`` or ``cv2.StereoSGBM``).
@@ -79,7 +80,8 @@ def match_opencv(matcher, left: torch.Tensor, right: torch.Tensor) -> tuple[torc
     check_shape(right, ["B", "1|3", "H", "W"], "right", dims)
     outs = []
     for i in range(left.shape[0]):
-        grey = [(x[i].detach().float().mean(0).clamp(0, 1) * 255).round().byte().cpu().numpy() for x in (left, right)]
+        grey = [(to_grey(x[i : i + 1])[0, 0].detach().float().clamp(0, 1) * 255).round().byte().cpu().numpy()
+                for x in (left, right)]
         outs.append(compute(matcher, *grey))
     disparity = torch.from_numpy(np.stack([d for d, _ in outs]))[:, None].clamp_min(0)
     valid = torch.from_numpy(np.stack([v for _, v in outs]))[:, None]
