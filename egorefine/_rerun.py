@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .core import MissingExtraError, ShapeError, StateError, ValueRangeError, check_shape, require_extra
+from .geometry import disparity_to_depth
 
 __all__ = ["RERUN_ENTITIES", "RerunLogger", "RerunNotInstalledError", "log_rerun", "require_rerun"]
 
@@ -101,13 +102,11 @@ def _depth_from_disparity(disparity: torch.Tensor, valid: torch.Tensor, focal: f
         tensor([[10.,  0.,  0.]])
     """
     d = disparity.float() if not disparity.is_floating_point() else disparity
-    fb = torch.as_tensor(focal, dtype=d.dtype) * torch.as_tensor(baseline, dtype=d.dtype)
-    has = valid.bool() & (d > 0)
-    # pixels without a value divide by 1 instead of by d <= 0 (their depth is 0 anyway); the valid ones by their
-    # own d, however small (no clamp: a depth image holds f B / d exactly), and a depth beyond the dtype's range
-    # (d below f B / 3.4e38 in float32) is no value either
-    depth = fb / torch.where(has, d, torch.ones_like(d))
-    return torch.where(has & torch.isfinite(depth), depth, torch.zeros_like(d))
+    as_b = lambda x: torch.as_tensor(x, dtype=d.dtype).reshape(1)  # noqa: E731
+    # a valid d however small is divided by (a clamp at the dtype's smallest normal value only keeps d <= 0 finite);
+    # pixels without a value, and a depth beyond the dtype's range, become 0 (a depth image's "no value")
+    depth = disparity_to_depth(d[None], as_b(focal), as_b(baseline), torch.finfo(d.dtype).tiny)[0]
+    return torch.where(valid.bool() & (d > 0) & torch.isfinite(depth), depth, torch.zeros_like(d))
 
 
 class RerunLogger:
