@@ -46,16 +46,22 @@ def read_grey(path: str | os.PathLike, device: torch.device | str | None = None,
     raw = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise DataError(f"path: {os.fspath(path)!r} is not an image file OpenCV can decode")
+    return torch.from_numpy(_grey(raw))[None, None].to(device=device, dtype=dtype)
+
+
+def _grey(raw: np.ndarray, code: int | None = None) -> np.ndarray:
+    """A decoded image (``(H, W)`` or ``(H, W, C)``; colour in OpenCV's BGR(A) order unless the conversion ``code``
+    says otherwise) as ``(H, W)`` float32 grey in [0, 1]: colour through the luma weights, integers scaled by their
+    type's maximum."""
     if raw.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        if code is None:
+            code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         raw = cv2.cvtColor(raw, code)
     if raw.dtype == np.uint8:
-        img = raw.astype(np.float32) / 255.0
-    elif raw.dtype == np.uint16:
-        img = raw.astype(np.float32) / 65535.0
-    else:
-        img = np.clip(raw.astype(np.float32), 0.0, 1.0)
-    return torch.from_numpy(img)[None, None].to(device=device, dtype=dtype)
+        return raw.astype(np.float32) / 255.0
+    if raw.dtype == np.uint16:
+        return raw.astype(np.float32) / 65535.0
+    return np.clip(raw.astype(np.float32), 0.0, 1.0)
 
 
 class ImageFolderSequence:

@@ -46,6 +46,7 @@ import torch
 
 from ..core import DataError, MissingDataError, MissingExtraError, ValueRangeError, require_extra
 from .calib import StereoCalibration, _from_ros, read_calibration, rectify_maps
+from .folder import _grey
 from .recording import StereoRecording, _fit_calibration
 
 __all__ = ["ROSBAG_ENCODINGS", "RosbagNotInstalledError", "RosbagRecording", "open_rosbag"]
@@ -103,19 +104,6 @@ class _MessageRef:
 def _stamp_ns(msg: Any) -> int:
     stamp = msg.header.stamp
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def _grey(raw: np.ndarray, code: int | None) -> np.ndarray:
-    """An integer image (``(H, W)`` or ``(H, W, C)``) as ``(H, W)`` float32 grey in [0, 1]."""
-    if raw.ndim == 3 and code is None:
-        code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-    if raw.ndim == 3:
-        raw = cv2.cvtColor(raw, code)
-    if raw.dtype == np.uint8:
-        return raw.astype(np.float32) / 255.0
-    if raw.dtype == np.uint16:
-        return raw.astype(np.float32) / 65535.0
-    return np.clip(raw.astype(np.float32), 0.0, 1.0)
 
 
 def _decode(msg: Any, msgtype: str, where: object) -> np.ndarray:
