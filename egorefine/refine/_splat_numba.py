@@ -173,8 +173,8 @@ if AVAILABLE:
     @_jit(error_model="numpy")
     def _targets(zbuf, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1, fill_holes,
                  process_noise, hole_variance, later, landed, disparity, variance, confidence):
-        """Steps 2 and 3 for target rows ``y0:y1`` of one batch item; returns the smallest landed value (+big:
-        none). A row without a landed pixel is filled later, from the whole image (marked in ``later``).
+        """Steps 2 and 3 for target rows ``y0:y1`` of one batch item. A row without a landed pixel is filled later,
+        from the whole image (marked in ``later``; its outputs other than ``landed`` are left to the caller).
 
         A row at a time, each stage split into loops without gathers (compiled to SIMD code) and loops that only
         gather: with the gathers inside, the loop stays scalar and several times slower. The compute loops touch
@@ -189,7 +189,6 @@ if AVAILABLE:
         Gt = (G[0, 0], G[0, 1], G[0, 2], G[1, 0], G[1, 1], G[1, 2], G[2, 0], G[2, 1], G[2, 2])
         e0, e1, e2 = e[0], e[1], e[2]
         a20, a21, a22, m2 = A[2, 0], A[2, 1], A[2, 2], a[2]
-        lowest = _BIG
         xs = np.arange(W).astype(np.float32)  # (a float32 column index, for the reason above)
         # the nearest surface within one pixel: 3x3 maximum of the keys, separable (rows here, columns below)
         rows_max = np.empty((y1 - y0 + 2, W), np.int32)
@@ -197,8 +196,7 @@ if AVAILABLE:
             z, out = zbuf[y0 + r + _PAD - 1], rows_max[r]
             for x in range(W):
                 out[x] = max(max(z[x + _PAD - 1], z[x + _PAD]), z[x + _PAD + 1])
-        cand_r, est_r, var_r, fill_r = (np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32),
-                                        np.empty(W, np.float32))
+        cand_r, est_r, var_r = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32)
         g0, g1, g2, g3 = np.empty(W, np.float32), np.empty(W, np.float32), np.empty(W, np.float32), np.empty(
             W, np.float32)
         land_r, fall_r = np.empty(W, np.bool_), np.empty(W, np.bool_)
@@ -277,32 +275,31 @@ if AVAILABLE:
                         est_r[x] = new if hz_ok & qz_ok & land_r[x] else est
             # -- outputs: the background hole fill (predict.fill_holes_background), variance and confidence
             land_out, d_out, v_out, c_out = landed[y], disparity[y], variance[y], confidence[y]
+            count = 0
             for x in range(W):
                 land_out[x] = land_r[x]
-            later[y] = False
-            if fill_holes:  # nearest landed value on the left, then the minimum with the one on the right
-                last = low = _BIG
-                for x in range(W):
-                    value = est_r[x] if land_r[x] else _BIG
-                    low = min(low, value)
-                    last = est_r[x] if land_r[x] else last
-                    fill_r[x] = last
-                lowest = min(lowest, low)
-                later[y] = low >= _BIG
-                if later[y]:  # no landed pixel: filled with the image's smallest landed value
-                    continue
-                last = _BIG
-                for x in range(W - 1, -1, -1):
-                    last = est_r[x] if land_r[x] else last
-                    d_out[x] = min(fill_r[x], last)
-            else:
-                for x in range(W):
-                    d_out[x] = est_r[x] if land_r[x] else _F(0.0)
+                count += np.int32(land_r[x])  # (an int32 sum: vectorised, where an int64 one would not be)
+            later[y] = fill_holes and count == 0
+            if later[y]:  # no landed pixel: filled with the image's smallest landed value (by the caller)
+                continue
+            for x in range(W):
+                d_out[x] = est_r[x] if land_r[x] else _F(0.0)
+            if fill_holes and count < W:  # each run of holes: the smaller of the landed values on either side
+                x = 0
+                while x < W:
+                    if land_r[x]:
+                        x += 1
+                        continue
+                    start = x
+                    while x < W and not land_r[x]:
+                        x += 1
+                    value = min(d_out[start - 1] if start > 0 else _BIG, d_out[x] if x < W else _BIG)
+                    for i in range(start, x):
+                        d_out[i] = value
             for x in range(W):
                 v = (var_r[x] + process_noise) if has_var else process_noise
                 v_out[x] = v if land_r[x] else hole_variance
                 c_out[x] = _F(1.0) / (_F(1.0) + v) if land_r[x] else _F(0.0)
-        return lowest
 
     @_jit
     def _fill(image_fill, hole_variance, rows, disparity, variance, confidence):
@@ -374,12 +371,11 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
         _scatter(at, key_new, zbuf, var_p, var is not None)
         later = np.empty(H, np.bool_)
         outs = (landed[i], disparity[i], variance[i], confidence[i])
-        lows = run(lambda band: _targets(zbuf, key_src, key_new, var_p, var is not None,
-                                         An[i], an[i], Gn[i], en[i], tol, refine_iterations, band[0], band[1],
-                                         fill_holes, noise, hole, later, *outs), bands)
+        run(lambda band: _targets(zbuf, key_src, key_new, var_p, var is not None, An[i], an[i], Gn[i], en[i], tol,
+                                  refine_iterations, band[0], band[1], fill_holes, noise, hole, later, *outs), bands)
         if later.any():  # rows without a landed pixel: the smallest landed value of the image (0 if none)
-            low = min(lows)
-            _fill(_F(0.0) if low >= _BIG else _F(low), hole, later, *outs[1:])
+            values = disparity[i][landed[i]]
+            _fill(_F(values.min()) if values.size else _F(0.0), hole, later, *outs[1:])
         return True
 
     workers = Workers(threads)
