@@ -18,6 +18,7 @@ egorefine.core.errors.ShapeError: right: dimension W must be 5 (as bound earlier
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -87,24 +88,40 @@ def check_shape(
     if not isinstance(x, torch.Tensor):
         raise DTypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
     bound = {} if bound is None else bound
-    expected = "(" + ", ".join(dims) + ")"
-    if x.dim() != len(dims):
-        raise ShapeError(f"{name}: expected shape {expected} ({len(dims)} dims), got {_fmt(x.shape)}")
-    for size, dim in zip(x.shape, dims, strict=True):
-        if dim == "*":
+    spec = _parsed_dims(tuple(dims))
+    shape = x.shape
+    if len(shape) != len(spec):
+        raise ShapeError(f"{name}: expected shape ({', '.join(dims)}) ({len(dims)} dims), got {_fmt(shape)}")
+    for size, (dim, sizes) in zip(shape, spec, strict=True):
+        if sizes is not None:
+            if size not in sizes:
+                raise ShapeError(f"{name}: expected shape ({', '.join(dims)}), got {_fmt(shape)}")
+        elif dim is None:  # "*"
             continue
-        options = dim.split("|")
-        if all(o.isdigit() for o in options):
-            if str(int(size)) not in options:
-                raise ShapeError(f"{name}: expected shape {expected}, got {_fmt(x.shape)}")
         elif dim in bound:
             if bound[dim] != size:
                 raise ShapeError(
-                    f"{name}: dimension {dim} must be {bound[dim]} (as bound earlier), got shape {_fmt(x.shape)}"
+                    f"{name}: dimension {dim} must be {bound[dim]} (as bound earlier), got shape {_fmt(shape)}"
                 )
         else:
             bound[dim] = int(size)
     return bound
+
+
+@functools.lru_cache(maxsize=512)
+def _parsed_dims(dims: tuple[str, ...]) -> tuple[tuple[str | None, frozenset[int] | None], ...]:
+    """``check_shape``'s ``dims`` read once: per entry ``(name, None)``, ``(None, allowed sizes)`` or ``(None, None)``
+    for ``"*"`` (the checks run on every frame; parsing the same strings each time cost more than the check)."""
+    out = []
+    for dim in dims:
+        options = dim.split("|")
+        if dim == "*":
+            out.append((None, None))
+        elif all(o.isdigit() for o in options):
+            out.append((None, frozenset(int(o) for o in options)))
+        else:
+            out.append((dim, None))
+    return tuple(out)
 
 
 def check_float(x: torch.Tensor, name: str) -> None:
