@@ -18,7 +18,6 @@ egorefine.core.errors.ShapeError: right: dimension W must be 5 (as bound earlier
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 
@@ -108,10 +107,16 @@ def check_shape(
     return bound
 
 
-@functools.lru_cache(maxsize=512)
+_PARSED_DIMS: dict[tuple[str, ...], tuple[tuple[str | None, frozenset[int] | None], ...]] = {}
+
+
 def _parsed_dims(dims: tuple[str, ...]) -> tuple[tuple[str | None, frozenset[int] | None], ...]:
     """``check_shape``'s ``dims`` read once: per entry ``(name, None)``, ``(None, allowed sizes)`` or ``(None, None)``
-    for ``"*"`` (the checks run on every frame; parsing the same strings each time cost more than the check)."""
+    for ``"*"`` (the checks run on every frame; parsing the same strings each time cost more than the check). A plain
+    dictionary, not ``functools.lru_cache``, which torch.compile warns about when it traces a check."""
+    parsed = _PARSED_DIMS.get(dims)
+    if parsed is not None:
+        return parsed
     out = []
     for dim in dims:
         options = dim.split("|")
@@ -121,7 +126,8 @@ def _parsed_dims(dims: tuple[str, ...]) -> tuple[tuple[str | None, frozenset[int
             out.append((None, frozenset(int(o) for o in options)))
         else:
             out.append((dim, None))
-    return tuple(out)
+    parsed = _PARSED_DIMS[dims] = tuple(out)
+    return parsed
 
 
 def check_float(x: torch.Tensor, name: str) -> None:
