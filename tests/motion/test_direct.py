@@ -104,3 +104,15 @@ def test_gradients_reach_the_images_the_disparity_and_K():
     out.motion[0, :3, 3].sum().backward()
     for x in (prev, img, disp, K):
         assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+def test_window_max_equals_max_pool():
+    # the depth-edge test's 5x5 maximum (shifted slices, rows then columns) against torch's max pooling
+    import torch.nn.functional as F
+
+    from egorefine.motion.direct import _window_max
+
+    x = torch.rand(2, 1, 13, 17, generator=torch.Generator().manual_seed(0)) * 50
+    x[0, 0, 3, 4], x[1, 0, 0, 0] = 1e9, -1e9  # the sentinels that stand for pixels without a disparity
+    for radius in (1, 2):
+        assert torch.equal(_window_max(x, radius), F.max_pool2d(x, 2 * radius + 1, 1, radius))
