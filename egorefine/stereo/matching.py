@@ -34,7 +34,7 @@ from ..core import (
     use_compiled,
 )
 from ..core.dispatch import needs_grad
-from . import _sad_numba, _sgm_numba
+from . import _fill_numba, _sad_numba, _sgm_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, box_sum_valid, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
@@ -523,13 +523,10 @@ def fill_invalid(primary: StereoOutput, secondary: StereoOutput) -> StereoOutput
         raise ShapeError(f"fill_invalid: primary is {tuple(primary.disparity.shape)}, secondary "
                          f"{tuple(secondary.disparity.shape)}; expected the same (B, 1, H, W)")
     keep = primary.valid
-    if use_compiled(primary.disparity, primary.variance, secondary.disparity, secondary.variance):
-        # numpy, no torch pass over the full maps (the loop's CPU inference path)
-        k = keep.numpy()
-        disparity = np.where(k, primary.disparity.numpy(), secondary.disparity.numpy())
-        variance = np.where(k, primary.variance.numpy(), secondary.variance.numpy())
-        valid = np.logical_or(k, secondary.valid.numpy())
-        return StereoOutput(torch.from_numpy(disparity), torch.from_numpy(valid), torch.from_numpy(variance))
+    if keep.dtype == torch.bool and secondary.valid.dtype == torch.bool and use_compiled(
+            primary.disparity, primary.variance, secondary.disparity, secondary.variance, keep, secondary.valid):
+        # one compiled pass, no torch pass over the full maps (the loop's CPU inference path)
+        return StereoOutput(*_fill_numba.fill_invalid(primary, secondary))
     return StereoOutput(torch.where(keep, primary.disparity, secondary.disparity), keep | secondary.valid,
                         torch.where(keep, primary.variance, secondary.variance))
 
