@@ -310,7 +310,7 @@ def table(results: dict) -> str:
                     if "median_prediction_epe" in e else "-")
             rows.append(
                 [
-                    key, method, src, e["median_t_mm"], e["mean_t_mm"], e["median_t_pct"], e["median_r_deg"],
+                    key, method, src, e["median_t_mm"], e["mean_t_mm"], e["median_t_pct"], f"{e['median_r_deg']:.4f}",
                     f"{e['ok_frames']}/{r['frames'] - 1}", det, trk, solve, pred,
                 ]
             )  # fmt: skip

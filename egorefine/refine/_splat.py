@@ -39,8 +39,8 @@ def _pixel_motion(motion: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor)
     A source pixel ``(x, y)`` with disparity ``d`` moves to ``P = A (x, y, 1) + a d`` (``P_z = Z'/Z``); a
     target pixel ``T`` sent back at disparity ``d'`` lands at ``G (T, 1) + e d'`` in frame ``t-1``.
     Returns ``A, a, G, e`` with ``A, G`` ``(B, 3, 3)`` and ``a, e`` ``(B, 3)``. On the compiled CPU path
-    (:func:`~egorefine.core.use_compiled`) the same products are taken with numpy: a few microseconds against
-    a few hundred for twenty torch operations on 3 x 3 matrices.
+    (:func:`~egorefine.core.use_compiled`) the same products are taken with numpy, far cheaper than twenty torch
+    operations on 3 x 3 matrices.
     """
     if use_compiled(motion, K, baseline):
         return tuple(torch.from_numpy(np.ascontiguousarray(m)) for m in _pixel_motion_numpy(
