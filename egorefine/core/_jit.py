@@ -22,20 +22,49 @@ except ImportError:  # pragma: no cover - exercised by the fallback tests throug
 AVAILABLE = numba is not None
 
 
-def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False, error_model: str = "python"):
+def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False, error_model: str = "python",
+        noalias: bool = False):
     """``numba.njit(cache=True, nogil=True)``, by default without fast-math (the kernels repeat the torch path's
     float32 operations; ``fastmath`` takes numba's flags for a kernel whose order of additions need not follow
     it); without a writable cache location numba cannot cache, so it only compiles.
 
     ``error_model="numpy"`` lets a float division by zero give inf or NaN as in numpy instead of raising: the
-    check numba otherwise puts in front of every division keeps a loop with one from becoming SIMD code."""
+    check numba otherwise puts in front of every division keeps a loop with one from becoming SIMD code.
+
+    ``noalias=True`` is a promise that no memory the kernel writes through one array argument is reached
+    through another (distinct rows of one array are fine; an array passed twice, as input and output, is
+    not): its array pointers are then marked ``noalias`` for LLVM, which drops the run-time overlap checks it
+    otherwise runs in front of every vectorised loop. Where an inner loop is short (a few dozen disparity
+    candidates) and entered once per pixel, those checks cost more than the loop. A broken promise gives
+    wrong results silently, so only kernels whose callers are all in view take it."""
     if fn is None:
-        return lambda f: jit(f, inline, fastmath, error_model)
+        return lambda f: jit(f, inline, fastmath, error_model, noalias)
     options = dict(nogil=True, fastmath=fastmath, inline=inline, error_model=error_model)
+    if noalias:
+        options["pipeline_class"] = _noalias_compiler()
     try:
         return numba.njit(cache=True, **options)(fn)
     except RuntimeError:  # "cannot cache function ...: no locator available"
         return numba.njit(cache=False, **options)(fn)
+
+
+_NOALIAS_COMPILER = []
+
+
+def _noalias_compiler() -> type:
+    """numba's default compiler with its ``noalias`` flag set (every array argument's data pointer marked
+    ``noalias``); numba has the flag but no ``njit`` option for it, so the pipeline class sets it."""
+    if not _NOALIAS_COMPILER:
+        from numba.core import compiler
+
+        class NoAliasCompiler(compiler.Compiler):
+            def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
+                flags = flags.copy()
+                flags.noalias = True
+                super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
+
+        _NOALIAS_COMPILER.append(NoAliasCompiler)
+    return _NOALIAS_COMPILER[0]
 
 
 def bands(n: int, parts: int) -> list[tuple[int, int]]:

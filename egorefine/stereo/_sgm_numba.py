@@ -106,7 +106,7 @@ if AVAILABLE:
 
         return sig, codegen
 
-    @_jit
+    @_jit(noalias=True)
     def _census(padded, window, out):
         """Census bytes ``out`` ``(planes, H, W)`` uint8 of an image replicate-padded by ``window // 2``
         (``padded``): bit ``b`` of plane ``i`` is 1 where neighbour ``8 i + b`` (census_transform's order: row by
@@ -128,7 +128,7 @@ if AVAILABLE:
                         acc |= np.int32(padded[y + k // window, x + k % window] < c) << b
                     out[plane, y, x] = np.uint8(acc)
 
-    @_jit
+    @_jit(noalias=True)
     def _raw_row(cl, cr, yy, r, max_d, planes, rpad, ring, slot, colsum, leaving):
         """Hamming distances of (clamped) image row ``yy`` into ``ring[slot]`` ``(W + 2r, D)`` uint8, padded columns
         ``x' in [0, W + 2r)``; ``colsum`` gains them and, where ``leaving`` (0xFF, else 0), loses the previous
@@ -226,7 +226,7 @@ if AVAILABLE:
     def _max(a, b):
         return a if a > b else b
 
-    @_jit
+    @_jit(noalias=True)
     def _run(src, dst, smins, dmins, n, back, c2, p0, pstride, x0, xstride, a2, tbig, tsub, p1, p2, max_d, mode):
         """``n`` independent SGM steps (sgm._step): item ``i`` goes from row ``i + 1 - back`` of ``src`` to row
         ``i + 1`` of ``dst``, ``L[j] = (C[j] - m) + min(prev[j], m + P2, prev[j +- 1] + P1)`` in the type ``T`` of
@@ -351,7 +351,7 @@ if AVAILABLE:
         variance = min(variance, np.float32(1.0e4)) if interior else np.float32(1.0)
         return j, disparity, ok, variance
 
-    @_jit
+    @_jit(noalias=True)
     def _finish_row(c2, a2, cur, y, w, x0, x1, tsub, tadd, select, vol, jbest, disparity, ok, variance, rmin, codes,
                     sums):
         """Pixels ``(y, x)``, ``x`` in ``[x0, x1)``: their aggregated costs ``((a2[p] + (L[j] - tsub)) + tadd) / paths``
@@ -419,7 +419,7 @@ if AVAILABLE:
         else:
             _census(padded, 7, out)
 
-    @_jit
+    @_jit(noalias=True)
     def _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2):
         """Row ``y`` of the box sums (block ``2r+1``) of the census Hamming distances into ``c2`` ``(H * W, D)``
         (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added where they are
@@ -504,7 +504,7 @@ if AVAILABLE:
                     _finish_row(c2, a2, rows[shifts - 1, 1 - (t & 1)], y, w, x0, x1, tsub, tadd, select, vol, jbest,
                                 disparity, ok, variance, rmin, codes, sums)
 
-    @_jit
+    @_jit(noalias=True)
     def _lr_check_rows(rmins, jbest, ok, max_d, bits, lr_threshold, y0, y1):
         """Left-right check of rows ``[y0, y1)``: the right view's winner (min over the bands' ``rmins``, with
         INVALID_COST where ``xr + d`` leaves the image, as matching._right_view_index) against the left one's."""
