@@ -47,7 +47,7 @@ _INT_INF = 1 << 30
 _HALF_INVALID = 5.0e5  # matching._select's INVALID_COST / 2
 
 if AVAILABLE:  # numba is a dependency, but the package stays importable (torch path) without it
-    from ._sgm_numba import _ctpop  # LLVM's population count
+    from ._sgm_numba import _ctpop, _edge_padded  # (_ctpop: LLVM's population count)
 
     @_jit
     def _census_rows(padded, window, y0, y1, out):
@@ -323,7 +323,7 @@ def match_band(grey_l: torch.Tensor, grey_r: torch.Tensor, lo: torch.Tensor, wid
     workers = Workers(threads)
     def item(i: int) -> None:  # (a function, so that each lambda below sees this item's arrays)
         census = np.empty((2, h, w), np.int64)
-        padded = [np.pad(img[i, 0], pad, mode="edge") for img in (left, right)]
+        padded = [_edge_padded(img[i, 0], pad) for img in (left, right)]
         workers.map(lambda job: _census_rows(padded[job[0]], census_window, *job[1], census[job[0]]),
                     [(k, band) for k in (0, 1) for band in row_bands])
         raw = np.empty((h, w, width + 2 * _MARGIN), np.int16)

@@ -410,8 +410,23 @@ if AVAILABLE:
             _raw_row(cl, cr, yy, r, max_d, 6, rpad, ring, slot, colsum, leaving)
 
     @_jit
-    def _census_of(padded, window, out):
-        """_census with ``window`` (3, 5 or 7) as the literal it takes."""
+    def _edge_padded(img, r):
+        """``numpy.pad(img, r, mode="edge")`` of a 2-D image (numpy's pad costs more than the census it feeds)."""
+        h, w = img.shape
+        out = np.empty((h + 2 * r, w + 2 * r), img.dtype)
+        for y in range(h + 2 * r):
+            src, row = img[min(max(y - r, 0), h - 1)], out[y]
+            for x in range(r):
+                row[x] = src[0]
+                row[w + r + x] = src[w - 1]
+            for x in range(w):
+                row[r + x] = src[x]
+        return out
+
+    @_jit
+    def _census_of(image, window, out):
+        """_census of ``image`` ``(H, W)`` (padded here) with ``window`` (3, 5 or 7) as the literal it takes."""
+        padded = _edge_padded(image, window // 2)
         if window == 3:
             _census(padded, 3, out)
         elif window == 5:
@@ -647,8 +662,7 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
 
     def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
         census = np.empty((2, planes, h, w), dtype=np.uint8)
-        pad = census_window // 2
-        run(lambda k: _census_of(np.pad((left, right)[k][i, 0], pad, mode="edge"), census_window, census[k]), (0, 1))
+        run(lambda k: _census_of((left, right)[k][i, 0], census_window, census[k]), (0, 1))
         cost = _volume("cost", (h, w, num), cost_dtype)
         acc = _volume("sums", (h, w, num), path_dtype)
         # a volume returned to the caller stays its own (each batch item's is kept until the end)

@@ -102,8 +102,8 @@ def box_sum_valid(x: torch.Tensor, k: int, dim: int) -> torch.Tensor:
     """Sum of ``k`` consecutive entries along ``dim`` (negative: counted from the end; 'valid' mode: length
     n - k + 1).
 
-    Done with about ``2 log2(k)`` shifted additions (exact; no cumulative-sum drift). Slicing only, so a numpy
-    array gives the same float32 sums in the same order (the compiled paths' numpy post-processing uses it).
+    Done with about ``2 log2(k)`` shifted additions (exact; no cumulative-sum drift); the compiled texture check
+    (:mod:`egorefine.stereo._texture_numba`) repeats this order of additions.
     """
     if dim >= 0:
         raise ValueError(f"box_sum_valid: dim must be negative, got {dim}")

@@ -17,7 +17,6 @@ import struct
 from functools import partial
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -34,8 +33,8 @@ from ..core import (
     use_compiled,
 )
 from ..core.dispatch import needs_grad
-from . import _fill_numba, _sad_numba, _sgm_numba
-from .cost import COSTS, INVALID_COST, _Features, box_mean_same, box_sum_valid, prefilter_xsobel, strip_volume
+from . import _fill_numba, _sad_numba, _sgm_numba, _texture_numba
+from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import sgm_aggregate
 from .speckle import clear_invalid_, remove_speckles
@@ -276,18 +275,6 @@ def _compiled_sad(grey_l: torch.Tensor, grey_r: torch.Tensor) -> bool:
     return use_compiled(grey_l, grey_r)
 
 
-def _textured_numpy(grey: np.ndarray, block_size: int, cap: float, threshold: float) -> np.ndarray:
-    """The texture check of the float path (``box_mean_same(|prefilter_xsobel|) >= threshold``) in numpy, the same
-    float32 operations in the same order, so the same decisions; ``(B, 1, H, W)`` float32 in, bool out."""
-    padded = np.pad(grey, ((0, 0), (0, 0), (1, 1), (1, 1)), mode="edge")
-    diff = padded[..., 2:] - padded[..., :-2]
-    gx = np.abs(np.clip(diff[..., :-2, :] + 2 * diff[..., 1:-1, :] + diff[..., 2:, :], -cap, cap))
-    r = block_size // 2
-    x = np.pad(gx, ((0, 0), (0, 0), (r, r), (r, r)), mode="edge")
-    return box_sum_valid(box_sum_valid(x, block_size, -2), block_size, -1) / (block_size * block_size) >= \
-        np.float32(threshold)
-
-
 def _use_numba_sgm(grey_l: torch.Tensor, grey_r: torch.Tensor, cost: str, num: int, differentiable: bool) -> bool:
     """The compiled census + SGM path applies: :func:`~egorefine.core.use_compiled` and the kernel's limits (the
     census cost, the hard winner, at least 2 candidates)."""
@@ -411,13 +398,10 @@ def _sgm_penalties(cost: str, census_window: int, sgm_p1: float | None, sgm_p2: 
 def _mask_untextured_numpy(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey_l: torch.Tensor,
                            block_size: int, prefilter_cap: float, texture_threshold: float) -> StereoOutput:
     """A compiled matcher's fresh CPU ``(disparity, valid, variance)`` with the texture check applied and the
-    maps cleared where not valid, in place with numpy (no torch pass over the full maps)."""
-    disparity, valid, variance = out
-    d, v, var = disparity.numpy(), valid.numpy(), variance.numpy()
-    np.logical_and(v, _textured_numpy(grey_l.detach().numpy(), block_size, prefilter_cap, texture_threshold), out=v)
-    d[~v] = 0.0
-    var[~v] = INVALID_VARIANCE
-    return StereoOutput(disparity, valid, variance)
+    maps cleared where not valid, in place in one compiled pass (:mod:`egorefine.stereo._texture_numba`: the
+    float path's decisions, no torch pass over the full maps)."""
+    return StereoOutput(*_texture_numba.mask_untextured(out, grey_l, block_size, prefilter_cap, texture_threshold,
+                                                        INVALID_VARIANCE))
 
 
 def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disparity: int, block_size: int, cost: str,

@@ -199,20 +199,26 @@ def test_raw_cost_check_rejects_what_matches_nothing():
 
 
 @pytest.mark.parametrize("block", [1, 5, 9])
-def test_numpy_texture_check_equals_the_torch_one(block):
-    """The compiled SGM path's texture check (numpy) makes the float path's decisions pixel for pixel, also at
-    values on the threshold (an image of 1/255 steps, as 8-bit input gives)."""
-    from egorefine.stereo.cost import box_mean_same, box_sum_valid, prefilter_xsobel
-    from egorefine.stereo.matching import _textured_numpy
+def test_compiled_texture_check_equals_the_torch_one(block):
+    """The compiled matchers' texture check (egorefine.stereo._texture_numba) makes the float path's decisions pixel
+    for pixel, also at values on the threshold (an image of 1/255 steps, as 8-bit input gives), and clears the maps
+    where it fails; the same on one thread and on two (bands of rows)."""
+    from egorefine.stereo._texture_numba import AVAILABLE, mask_untextured
+    from egorefine.stereo.cost import box_mean_same, prefilter_xsobel
 
+    if not AVAILABLE:
+        pytest.skip("numba is not installed")
     g = torch.Generator().manual_seed(block)
     grey = (torch.rand(2, 1, 23, 31, generator=g) * 8).round() / 255.0
     grey[0, :, :, :10] = 0.5  # a flat region: texture 0
     cap, threshold = 31.0 / 255.0, 0.004
-    torch_texture = box_mean_same(prefilter_xsobel(grey, cap).abs(), block)
-    assert torch.equal(torch.from_numpy(_textured_numpy(grey.numpy(), block, cap, threshold)),
-                       torch_texture >= threshold)
-    x = torch.rand(1, 1, 9, 12, generator=g)
-    for dim in (-2, -1):
-        assert torch.equal(torch.from_numpy(box_sum_valid(x.numpy(), block, dim)), box_sum_valid(x, block, dim))
-    assert (torch_texture >= threshold).any() and not (torch_texture[0, :, :, :8 - block // 2] >= threshold).any()
+    textured = box_mean_same(prefilter_xsobel(grey, cap).abs(), block) >= threshold
+    matched = torch.rand(2, 1, 23, 31, generator=g) > 0.2
+    for threads in (1, 2):
+        d, var = torch.rand(2, 1, 23, 31, generator=g) + 1.0, torch.rand(2, 1, 23, 31, generator=g) + 1.0
+        out = mask_untextured((d.clone(), matched.clone(), var.clone()), grey, block, cap, threshold, 99.0,
+                              threads=threads)
+        keep = matched & textured
+        assert torch.equal(out[1], keep)
+        assert torch.equal(out[0], torch.where(keep, d, 0.0)) and torch.equal(out[2], torch.where(keep, var, 99.0))
+    assert textured.any() and not textured[0, :, :, :8 - block // 2].any()
