@@ -41,7 +41,7 @@ from ..core import (
     to_grey,
 )
 from ..features import build_pyramid, replenish, track
-from ..motion import solve_ego_motion
+from ..motion import refine_motion_direct, solve_ego_motion
 from ..stereo import StereoOutput, fill_invalid, match_residual, match_stereo, match_stereo_regions
 from ..stereo.band import match_sgm_band
 from ..stereo.matching import _TEMPERATURES
@@ -151,8 +151,13 @@ class EgoMotionRefiner(nn.Module):
             not valid (no stereo run could verify them).
         verify_every: run stereo every i-th frame (``i`` in the paper); 1 = every frame.
         fusion: ``"paper"`` (the gate/gain rule of docs/method.md, step 4) or ``"kalman"`` (per-pixel variance).
-        motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` (RANSAC around it) or ``"exact"`` (SE(3)
-            reprojection; the default: first order is not enough at a metre per frame).
+        motion_method: ``"linear"`` (the paper's eq. 3), ``"robust"`` (RANSAC around it), ``"exact"`` (SE(3)
+            reprojection; the default: first order is not enough at a metre per frame) or ``"direct"`` (the exact
+            solve, then :func:`~egorefine.motion.refine_motion_direct`: the new left image aligned to the previous
+            one through the previous frame's disparity; it keeps the exact solve's motion wherever it cannot lower
+            the photometric cost). Not the default: it costs an alignment per frame, it helps on large sharp images
+            more than on small noisy ones, and on the renders the prediction frames' error comes from elsewhere
+            (docs/decisions.md, "What the motion costs the loop").
         stereo: :class:`~egorefine.refine.options.StereoOptions`, the verification matcher (``min_disparity``,
             block, cost, aggregation, sub-pixel fit, soft-argmin temperature, ``fill``: in Kalman mode by
             default the box matcher's holes are filled from census + SGM, for SGBM's density).
@@ -222,7 +227,7 @@ class EgoMotionRefiner(nn.Module):
     ) -> None:
         super().__init__()
         check_choice(fusion, ("paper", "kalman"), "fusion")
-        check_choice(motion_method, ("linear", "robust", "exact"), "motion_method")
+        check_choice(motion_method, ("linear", "robust", "exact", "direct"), "motion_method")
         if int(verify_every) < 1:
             raise ValueRangeError(f"verify_every: expected an integer >= 1, got {verify_every}")
         groups = resolve_groups({"stereo": stereo, "tracking": tracking, "prediction": prediction,
@@ -547,8 +552,12 @@ class EgoMotionRefiner(nn.Module):
             baseline,
             weights=tracked.weights,
             valid_prev=state.valid,
-            method=self.motion_method,
+            method="exact" if self.motion_method == "direct" else self.motion_method,
         )
+        if self.motion_method == "direct":  # the solve refined photometrically where it lowers the cost
+            direct = refine_motion_direct(state.image, grey, state.disparity, K, baseline, ego.motion,
+                                          prev_valid=state.valid, prev_variance=state.variance)
+            ego = ego._replace(motion=torch.where(ego.ok[:, None, None], direct.motion, ego.motion))
         # A scene change (most tracks lost at once: a swapped, covered or blinded camera) counts as a failed motion.
         collapsed = tracking_collapsed((state.weights > 0).sum(1), (tracked.weights > 0).sum(1))
         ok = ego.ok & ~collapsed

@@ -144,6 +144,22 @@ def test_black_frame_falls_back_to_stereo_without_nan(small_seq):
     assert torch.isfinite(out.disparity).all()
 
 
+def test_direct_motion_method_refines_the_exact_solve(ideal_seq):
+    # motion_method="direct": the exact solve, then the photometric alignment through the previous frame's map. On
+    # ideal renders the photometric model holds, and the refined motion is closer to the truth than the exact
+    # solve's (median over the frames; measured 1.3 against 1.8 % of the step).
+    gt = ideal_seq.motions[1:]
+    step = gt[:, :3, 3].norm(dim=-1)
+    errors = {}
+    for method in ("exact", "direct"):
+        outs, _ = _run(ideal_seq, EgoMotionRefiner(verify_every=3, fusion="kalman", motion_method=method, **SMALL))
+        assert all(bool(o.motion_ok.all()) for o in outs)
+        errors[method] = translation_error(torch.cat([o.motion for o in outs[1:]]), gt) / step
+    assert not torch.equal(errors["exact"], errors["direct"])  # the refinement ran and moved the motion
+    assert errors["direct"].median() < 0.9 * errors["exact"].median(), errors
+    assert (errors["direct"] < 0.04).all()
+
+
 @pytest.mark.parametrize(
     ("options", "epe_bound", "median_bound"),
     [
