@@ -19,8 +19,9 @@ refiner at verify_every=5: Kalman mode with default options (the target row: on 
 matcher, its holes filled from census + SGM, ``StereoOptions.fill``), paper mode (the method as published:
 pixel-accurate stereo, the linear motion solve of eq. 3, gate 0.5 px, gain 0.4), Kalman mode with the box
 matcher alone (the default of earlier releases), Kalman mode with census + SGM alone (``StereoOptions.dense()``,
-unverified predictions kept; chosen on the tuning seeds), and Kalman mode with the opt-in +-2 px residual search
-and hole measurement.
+unverified predictions kept; chosen on the tuning seeds), Kalman mode with the opt-in +-2 px residual search
+and hole measurement, Kalman mode with stereo on every frame (what the prediction frames between verifications
+cost), and Kalman mode with ``motion_method="direct"`` (the exact solve refined photometrically).
 
 For each it reports EPE, median error, bad-0.5, bad-1 (on pixels a method marks valid that have truth
 and are not occluded), density (share of those pixels a method marks valid), the temporal consistency
@@ -114,6 +115,8 @@ SGBM = "OpenCV SGBM 3-way"
 KALMAN = f"kalman mode, verify every {VERIFY_EVERY}"
 PAPER = f"paper mode, verify every {VERIFY_EVERY}"
 HOLES = f"kalman + local search 2 + holes, verify every {VERIFY_EVERY}"
+EVERY_FRAME = "kalman mode, verify every 1"  # stereo on every frame: what the prediction frames cost (issue 31)
+DIRECT = f"kalman, direct motion, verify every {VERIFY_EVERY}"  # motion_method="direct" (issue 31)
 BOX = f"kalman, box matcher alone, verify every {VERIFY_EVERY}"
 DENSE = f"kalman, census + SGM alone, verify every {VERIFY_EVERY}"
 
@@ -216,9 +219,8 @@ def run_refiner(refiner: EgoMotionRefiner, seq: StereoSequence) -> tuple[torch.T
 
 
 def methods_for(max_disp: int, holes: bool) -> dict[str, Callable[[StereoSequence], tuple]]:
-    def refiner(**options):
-        return lambda seq: run_refiner(EgoMotionRefiner(max_disparity=max_disp, verify_every=VERIFY_EVERY,
-                                                        **options), seq)
+    def refiner(every: int = VERIFY_EVERY, **options):
+        return lambda seq: run_refiner(EgoMotionRefiner(max_disparity=max_disp, verify_every=every, **options), seq)
 
     methods = {OWN: lambda seq: run_per_frame(lambda a, b: block_matching(a, b, max_disp), seq),
                OWN_SGM: lambda seq: run_per_frame(lambda a, b: block_matching(a, b, max_disp, cost="census",
@@ -226,6 +228,8 @@ def methods_for(max_disp: int, holes: bool) -> dict[str, Callable[[StereoSequenc
     for name, fn in opencv_matchers(max_disp).items():
         methods[name] = lambda seq, fn=fn: run_per_frame(fn, seq)
     methods[KALMAN] = refiner(fusion="kalman")  # every other option at its default: the target row
+    methods[EVERY_FRAME] = refiner(1, fusion="kalman")
+    methods[DIRECT] = refiner(fusion="kalman", motion_method="direct")
     methods[PAPER] = refiner(fusion="paper", motion_method="linear", stereo=StereoOptions(subpixel=False))
     methods[BOX] = refiner(fusion="kalman", stereo=StereoOptions(fill=False))
     methods[DENSE] = refiner(fusion="kalman", stereo=StereoOptions.dense(),
