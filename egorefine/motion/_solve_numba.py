@@ -239,10 +239,11 @@ if AVAILABLE:
         _fit(R, wi, damping, eps, tiny, x)
 
     @_jit
-    def _motion_of(twist, small2, M):
-        """twist_to_motion = se3_exp(-twist) (geometry.se3) in closed form, with the same series near zero rotation."""
-        r0, r1, r2 = -twist[0], -twist[1], -twist[2]
-        p0, p1, p2 = -twist[3], -twist[4], -twist[5]
+    def _se3_exp(xi, sign, small2, E):
+        """geometry.se3_exp of the twist ``sign * xi[:6]`` (translation first; ``sign`` 1 or -1) into ``E (4, 4)``,
+        float64, in closed form with its series near zero rotation (``small2``: the squared angle below which
+        Rodrigues' terms are series)."""
+        p0, p1, p2 = sign * xi[3], sign * xi[4], sign * xi[5]
         t2 = p0 * p0 + p1 * p1 + p2 * p2
         if t2 < small2:
             a = 1 - t2 / 6 + t2 * t2 / 120
@@ -257,16 +258,20 @@ if AVAILABLE:
             t = math.sqrt(t2)
             c = (t - math.sin(t)) / (t2 * t)
         W = np.array([[0.0, -p2, p1], [p2, 0.0, -p0], [-p1, p0, 0.0]])
-        rho = (r0, r1, r2)
         for r in range(3):
             tr = 0.0
             for col in range(3):
                 w2 = W[r, 0] * W[0, col] + W[r, 1] * W[1, col] + W[r, 2] * W[2, col]
                 eye = 1.0 if r == col else 0.0
-                M[r, col] = eye + a * W[r, col] + b * w2  # Rodrigues
-                tr += (eye + b * W[r, col] + c * w2) * rho[col]  # left Jacobian of SO(3) times rho
-            M[r, 3] = tr
-        M[3, 0], M[3, 1], M[3, 2], M[3, 3] = 0.0, 0.0, 0.0, 1.0
+                E[r, col] = eye + a * W[r, col] + b * w2  # Rodrigues
+                tr += (eye + b * W[r, col] + c * w2) * (sign * xi[col])  # left Jacobian of SO(3) times translation
+            E[r, 3] = tr
+        E[3, 0], E[3, 1], E[3, 2], E[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+    @_jit
+    def _motion_of(twist, small2, M):
+        """twist_to_motion = se3_exp(-twist) (geometry.se3) in closed form, with the same series near zero rotation."""
+        _se3_exp(twist, -1.0, small2, M)
 
     @_jit
     def _twist_of(M, tiny, small2, twist):

@@ -30,6 +30,8 @@ Steps of :func:`refine_motion_direct` (one batch of items, fixed shapes):
 
 Every step is a torch operation (``grid_sample``, batched ``linalg.solve``), so gradients reach the images, the
 disparity and ``K`` through the final iterations (the pixel choice and the accept tests are piecewise constant).
+For float32 CPU tensors that need no gradient (:func:`~egorefine.core.use_compiled`), the same steps run compiled
+(:mod:`egorefine.motion._direct_numba`), with float64 sums; this torch code stays the reference.
 """
 
 from __future__ import annotations
@@ -41,9 +43,10 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d, spatial_gradient
 
-from ..core import ValueRangeError, check_float, check_positive, check_shape, eps_like, to_grey
+from ..core import ValueRangeError, check_float, check_positive, check_shape, eps_like, to_grey, use_compiled
 from ..features import build_pyramid
 from ..geometry import se3_exp
+from . import _direct_numba
 from .robust import robust_loss, robust_weight
 
 __all__ = ["DirectMotion", "refine_motion_direct", "DIRECT_STATUS"]
@@ -116,8 +119,6 @@ def _select_pixels(grey: torch.Tensor, disparity: torch.Tensor, valid: torch.Ten
     smooth = (hi - lo) <= max_step
     score = torch.where(valid & smooth & (disparity > 0) & (g >= min_gradient), g, torch.full_like(g, -1.0))
     hc, wc = h // cell, w // cell
-    if hc == 0 or wc == 0:
-        raise ValueRangeError(f"refine_motion_direct: the image ({h}x{w}) is smaller than one cell ({cell} px)")
     cells = score[..., : hc * cell, : wc * cell].reshape(b, hc, cell, wc, cell).permute(0, 1, 3, 2, 4)
     best, index = cells.reshape(b, hc * wc, cell * cell).topk(min(per_cell, cell * cell), dim=-1)
     cy, cx = torch.div(index, cell, rounding_mode="floor"), index % cell
@@ -276,9 +277,16 @@ def refine_motion_direct(
     if levels < 1 or iterations < 0 or cell < 2 or per_cell < 1:
         raise ValueRangeError(f"refine_motion_direct: expected levels >= 1, iterations >= 0, cell >= 2, per_cell >= 1;"
                               f" got {levels}, {iterations}, {cell}, {per_cell}")
+    if dims["H"] < cell or dims["W"] < cell:
+        raise ValueRangeError(f"refine_motion_direct: the image ({dims['H']}x{dims['W']}) is smaller than one cell"
+                              f" ({cell} px)")
     dtype = prev_disparity.dtype
     prev_grey = to_grey(prev_image).to(dtype)
     grey = to_grey(image).to(dtype)
+    if use_compiled(prev_image, image, prev_disparity, K, baseline, motion, prev_valid, prev_variance):
+        return DirectMotion(*_direct_numba.refine_compiled(
+            prev_grey, grey, prev_disparity, prev_valid, prev_variance, K, baseline, motion, levels, iterations, cell,
+            per_cell, sigma, min_gradient, min_pixels, damping, blur, max_step))
     if blur > 0:  # band-limited images: bilinear samples between pixels are then close to the true intensities
         k = 2 * int(math.ceil(2 * blur)) + 1
         prev_grey = gaussian_blur2d(prev_grey, (k, k), (blur, blur), border_type="replicate")
