@@ -10,7 +10,9 @@ makes the intensities agree,
 
 with an affine brightness change ``(a, b)`` (exposure, gain) estimated jointly. The point is written in
 inverse-depth form (``R K^-1 p + t rho`` is the moved point scaled by ``rho``, whose projection is the same), so a
-far point (``rho`` near 0) stays finite and only its rotation moves it.
+far point (``rho`` near 0) stays finite and only its rotation moves it. On a stereo frame the new right image
+adds a second residual per pixel, the same point seen by the right camera (its pixel the left one moved by the
+new disparity ``f B rho / q_z``) against the same previous intensity, with the right camera's own ``(a, b)``.
 
 Steps of :func:`refine_motion_direct` (one batch of items, fixed shapes):
 
@@ -135,26 +137,31 @@ def _scaled_intrinsics(K: torch.Tensor, level: int) -> torch.Tensor:
     return Kl
 
 
-def _warp(motion: torch.Tensor, rays: torch.Tensor, rho: torch.Tensor, K: torch.Tensor
-          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _warp(motion: torch.Tensor, rays: torch.Tensor, rho: torch.Tensor, K: torch.Tensor,
+          shift: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Moved points in inverse-depth form ``q = R rays + t rho`` ``(B, N, 3)``, their pixels ``(B, N, 2)`` and
-    whether they lie in front of the camera."""
+    whether they lie in front of the camera. ``shift`` ``(B,)``: ``fx B`` of the right camera of a rectified pair,
+    whose pixel is the left one moved by the new disparity ``fx B rho / q_z``; None: the left camera."""
     q = rays @ motion[:, :3, :3].transpose(1, 2) + motion[:, None, :3, 3] * rho[..., None]
     z = q[..., 2]
     front = z > eps_like(z) ** 0.5
     zs = torch.where(front, z, torch.ones_like(z))
     u = K[:, None, 0, 0] * q[..., 0] / zs + K[:, None, 0, 2]
+    if shift is not None:
+        u = u - shift[:, None] * rho / zs
     v = K[:, None, 1, 1] * q[..., 1] / zs + K[:, None, 1, 2]
     return q, torch.stack([u, v], dim=-1), front
 
 
 def _residuals(state: tuple, level: dict, motion: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor,
                jacobian: bool):
-    """Residuals ``(B, N)``, their weights' geometric part and validity, and (with ``jacobian``) ``J`` ``(B, N, 8)``."""
+    """Residuals ``(B, N)``, their weights' geometric part and validity, and (with ``jacobian``) ``J`` ``(B, N, 8)``
+    of one camera (``level["shift"]``: None for the left one, see :func:`_warp`)."""
     rays, rho, var_rho, usable = state
     K, image, grads, template = level["K"], level["image"], level["grads"], level["template"]
+    shift = level.get("shift")
     h, w = image.shape[-2:]
-    q, uv, front = _warp(motion, rays, rho, K)
+    q, uv, front = _warp(motion, rays, rho, K, shift)
     inside = front & (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
     value = _sample(image, uv)[:, 0]
     r = value - (gain[:, None] * template + offset[:, None])
@@ -163,11 +170,16 @@ def _residuals(state: tuple, level: dict, motion: torch.Tensor, gain: torch.Tens
     zs = torch.where(front, q[..., 2], torch.ones_like(q[..., 2]))
     fx, fy = K[:, None, 0, 0], K[:, None, 1, 1]
     # d(u, v) / dq: the projection's Jacobian (q is scale-free: its projection is the moved point's)
-    du = torch.stack([fx / zs, torch.zeros_like(zs), -fx * q[..., 0] / zs**2], dim=-1)
+    du_dz = -fx * q[..., 0] / zs**2
+    if shift is not None:  # the right camera's u also holds -fx B rho / q_z
+        du_dz = du_dz + shift[:, None] * rho / zs**2
+    du = torch.stack([fx / zs, torch.zeros_like(zs), du_dz], dim=-1)
     dv = torch.stack([torch.zeros_like(zs), fy / zs, -fy * q[..., 1] / zs**2], dim=-1)
     dI_dq = g[:, 0, :, None] * du + g[:, 1, :, None] * dv  # (B, N, 3)
-    # the disparity's variance moved through the warp: dq/drho = t
+    # the disparity's variance moved through the warp: dq/drho = t (and the right camera's shift, d u / d rho)
     dI_drho = (dI_dq * motion[:, None, :3, 3]).sum(-1)
+    if shift is not None:
+        dI_drho = dI_drho - g[:, 0] * shift[:, None] / zs
     geometric = dI_drho**2 * var_rho
     if not jacobian:
         return r, geometric, ok, None
@@ -175,6 +187,24 @@ def _residuals(state: tuple, level: dict, motion: torch.Tensor, gain: torch.Tens
     cross = torch.linalg.cross(q, dI_dq, dim=-1)  # (dI/dq) . (phi x q) = phi . (q x dI/dq)
     J = torch.cat([dI_dq * rho[..., None], cross, -template[..., None], -torch.ones_like(template)[..., None]], -1)
     return r, geometric, ok, J
+
+
+def _stacked(state: tuple, cameras: list[dict], motion: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor,
+             jacobian: bool):
+    """:func:`_residuals` of every camera of a level, concatenated along the pixels: ``(B, C N)`` residuals,
+    geometric parts and validity, and ``J`` ``(B, C N, 6 + 2 C)`` (the motion's six columns shared, each camera its
+    own brightness pair). ``gain``, ``offset``: ``(B, C)``. One camera: its tensors as they are."""
+    if len(cameras) == 1:
+        return _residuals(state, cameras[0], motion, gain[:, 0], offset[:, 0], jacobian)
+    parts = [_residuals(state, lv, motion, gain[:, i], offset[:, i], jacobian) for i, lv in enumerate(cameras)]
+    r, geo, ok = (torch.cat([p[k] for p in parts], 1) for k in range(3))
+    if not jacobian:
+        return r, geo, ok, None
+    rows = []
+    for i, (_, _, _, J) in enumerate(parts):
+        pairs = [J[..., 6:] if k == i else torch.zeros_like(J[..., 6:]) for k in range(len(cameras))]
+        rows.append(torch.cat([J[..., :6], *pairs], -1))
+    return r, geo, ok, torch.cat(rows, 1)
 
 
 def _weights(r: torch.Tensor, geometric: torch.Tensor, ok: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -224,6 +254,7 @@ def refine_motion_direct(
     damping: float = 1e-3,
     blur: float = 1.0,
     max_step: float = 0.5,
+    right_image: torch.Tensor | None = None,
 ) -> DirectMotion:
     """Refine the ego-motion ``motion`` by aligning ``image`` to ``prev_image`` warped through ``prev_disparity``.
 
@@ -252,6 +283,10 @@ def refine_motion_direct(
             band-limited image between pixels are close to its true intensities, and the cost is smoother.
         max_step: pixels whose 5x5 neighbourhood spans more than this many px of disparity (a depth edge, where the
             intensity mixes two surfaces that move apart) are not used (default 0.5).
+        right_image: ``(B, 1|3, H, W)`` the right image of frame ``t`` (a stereo frame), or None. Given, every pixel
+            also compares the previous left intensity with the new right image at the point's new disparity (the
+            right camera ``baseline`` to the right of the left one, rectified), with its own brightness model: twice
+            the residuals, and a second view of the same motion. This runs on the torch path.
 
     Returns:
         :class:`DirectMotion`.
@@ -270,6 +305,9 @@ def refine_motion_direct(
     check_shape(K, ["B", "3", "3"], "K", dims)
     check_shape(baseline, ["B"], "baseline", dims)
     check_shape(motion, ["B", "4", "4"], "motion", dims)
+    if right_image is not None:
+        check_shape(right_image, ["B", "1|3", "H", "W"], "right_image", dims)
+        check_float(right_image, "right_image")
     for name, x in (("prev_image", prev_image), ("image", image), ("prev_disparity", prev_disparity), ("K", K),
                     ("motion", motion)):
         check_float(x, name)
@@ -283,14 +321,16 @@ def refine_motion_direct(
     dtype = prev_disparity.dtype
     prev_grey = to_grey(prev_image).to(dtype)
     grey = to_grey(image).to(dtype)
-    if use_compiled(prev_image, image, prev_disparity, K, baseline, motion, prev_valid, prev_variance):
+    if right_image is None and use_compiled(prev_image, image, prev_disparity, K, baseline, motion, prev_valid,
+                                            prev_variance):
         return DirectMotion(*_direct_numba.refine_compiled(
             prev_grey, grey, prev_disparity, prev_valid, prev_variance, K, baseline, motion, levels, iterations, cell,
             per_cell, sigma, min_gradient, min_pixels, damping, blur, max_step))
+    greys = [grey] if right_image is None else [grey, to_grey(right_image).to(dtype)]  # the new images, per camera
     if blur > 0:  # band-limited images: bilinear samples between pixels are then close to the true intensities
         k = 2 * int(math.ceil(2 * blur)) + 1
         prev_grey = gaussian_blur2d(prev_grey, (k, k), (blur, blur), border_type="replicate")
-        grey = gaussian_blur2d(grey, (k, k), (blur, blur), border_type="replicate")
+        greys = [gaussian_blur2d(g, (k, k), (blur, blur), border_type="replicate") for g in greys]
     valid = prev_disparity > 0 if prev_valid is None else prev_valid.bool() & (prev_disparity > 0)
     finite = torch.isfinite(prev_disparity)
     valid = valid & finite
@@ -312,30 +352,40 @@ def refine_motion_direct(
     rays = torch.linalg.solve(K[:, None], torch.cat([xy, ones], -1)[..., None])[..., 0]  # (B, N, 3)
 
     # 2. coarse to fine: at each level the template intensities at the pixels (scaled), the new image and gradients
-    pyr_prev, pyr = build_pyramid(prev_grey, levels), build_pyramid(grey, levels)
+    # (per level, one entry per camera: the left one, then the right one with its shift fx B)
+    pyr_prev, pyrs = build_pyramid(prev_grey, levels), [build_pyramid(g, levels) for g in greys]
     state_levels = []
     for level in range(levels):
         template = _sample(pyr_prev[level], xy * 2.0**-level)[:, 0]
-        grads = spatial_gradient(pyr[level], mode="diff")[:, 0]  # (B, 2, H, W): d/dx, d/dy
-        state_levels.append({"K": _scaled_intrinsics(K, level), "image": pyr[level], "grads": grads,
-                             "template": template})
+        Kl = _scaled_intrinsics(K, level)
+        cameras = []
+        for i, pyr in enumerate(pyrs):
+            grads = spatial_gradient(pyr[level], mode="diff")[:, 0]  # (B, 2, H, W): d/dx, d/dy
+            cameras.append({"K": Kl, "image": pyr[level], "grads": grads, "template": template,
+                            "shift": Kl[:, 0, 0] * baseline if i == 1 else None})
+        state_levels.append(cameras)
     state = (rays, rho, var_rho, usable)
-    gain, offset = torch.ones(b, dtype=dtype, device=d.device), torch.zeros(b, dtype=dtype, device=d.device)
+    n_cam = len(greys)
+    gain = torch.ones(b, n_cam, dtype=dtype, device=d.device)
+    offset = torch.zeros(b, n_cam, dtype=dtype, device=d.device)
 
-    # the input's cost at the finest level, with its best brightness model (the bar the result must pass)
+    # the input's cost at the finest level, with its best brightness model per camera (the bar the result must pass)
     finest = state_levels[0]
-    r, geo, ok, _ = _residuals(state, finest, motion, gain, offset, jacobian=False)
-    gain0, offset0 = _best_brightness(r, finest["template"], _weights(r, geo, ok, sigma), gain, offset)
-    r, geo, ok, _ = _residuals(state, finest, motion, gain0, offset0, jacobian=False)
+    r, geo, ok, _ = _stacked(state, finest, motion, gain, offset, jacobian=False)
+    w0, n = _weights(r, geo, ok, sigma), rho.shape[1]
+    fits = [_best_brightness(r[:, i * n:(i + 1) * n], template_i, w0[:, i * n:(i + 1) * n], gain[:, i], offset[:, i])
+            for i, template_i in enumerate(lv["template"] for lv in finest)]
+    gain0, offset0 = torch.stack([f[0] for f in fits], 1), torch.stack([f[1] for f in fits], 1)
+    r, geo, ok, _ = _stacked(state, finest, motion, gain0, offset0, jacobian=False)
     cost_before = _cost(r, geo, ok, sigma)
-    num_pixels = ok.sum(-1)
+    num_pixels = ok[:, :n].sum(-1)  # (the left camera's: each pixel counts once)
 
     current, a, c = motion, gain0, offset0
     lam = torch.full((b,), damping, dtype=dtype, device=d.device)
-    eye = torch.eye(8, dtype=dtype, device=d.device)
+    eye = torch.eye(6 + 2 * n_cam, dtype=dtype, device=d.device)
     for level in reversed(range(levels)):
         lv = state_levels[level]
-        r, geo, ok, J = _residuals(state, lv, current, a, c, jacobian=True)
+        r, geo, ok, J = _stacked(state, lv, current, a, c, jacobian=True)
         cost = _cost(r, geo, ok, sigma)
         for _ in range(iterations):
             w = _weights(r, geo, ok, sigma)
@@ -346,25 +396,26 @@ def refine_motion_direct(
             step = -torch.linalg.solve(A, g[..., None])[..., 0]
             step = torch.where(torch.isfinite(step).all(-1, keepdim=True), step, torch.zeros_like(step))
             trial = se3_exp(step[:, :6]) @ current
-            a_t, c_t = a + step[:, 6], c + step[:, 7]
-            r_t, geo_t, ok_t, J_t = _residuals(state, lv, trial, a_t, c_t, jacobian=True)
+            a_t, c_t = a + step[:, 6::2], c + step[:, 7::2]
+            r_t, geo_t, ok_t, J_t = _stacked(state, lv, trial, a_t, c_t, jacobian=True)
             cost_t = _cost(r_t, geo_t, ok_t, sigma)
             better = cost_t < cost
             pick = better[:, None]
             current = torch.where(better[:, None, None], trial, current)
-            a, c = torch.where(better, a_t, a), torch.where(better, c_t, c)
+            a, c = torch.where(pick, a_t, a), torch.where(pick, c_t, c)
             r, geo, J = torch.where(pick, r_t, r), torch.where(pick, geo_t, geo), torch.where(pick[..., None], J_t, J)
             ok = torch.where(pick, ok_t, ok)
             cost = torch.where(better, cost_t, cost)
             lam = torch.where(better, lam * 0.5, lam * 4.0).clamp(min=damping * 1e-3, max=1e6)
 
     # 3. acceptance at the finest level
-    r, geo, ok, _ = _residuals(state, finest, current, a, c, jacobian=False)
+    r, geo, ok, _ = _stacked(state, finest, current, a, c, jacobian=False)
     cost_after = _cost(r, geo, ok, sigma)
-    finite_result = torch.isfinite(current).all(-1).all(-1) & torch.isfinite(cost_after) & torch.isfinite(a)
+    finite_result = torch.isfinite(current).all(-1).all(-1) & torch.isfinite(cost_after) & torch.isfinite(a).all(-1)
     status = torch.full((b,), DIRECT_STATUS["refined"], dtype=torch.long, device=d.device)
     status = torch.where(cost_after < cost_before, status, torch.full_like(status, DIRECT_STATUS["cost rose"]))
-    in_range = (a >= _GAIN_RANGE[0]) & (a <= _GAIN_RANGE[1])
+    in_range = ((a >= _GAIN_RANGE[0]) & (a <= _GAIN_RANGE[1])).all(-1)
+    a, c = a[:, 0], c[:, 0]  # (the left camera's brightness model is the one reported)
     status = torch.where(in_range, status, torch.full_like(status, DIRECT_STATUS["brightness"]))
     status = torch.where(finite_result, status, torch.full_like(status, DIRECT_STATUS["not finite"]))
     status = torch.where(num_pixels >= min_pixels, status, torch.full_like(status, DIRECT_STATUS["too few pixels"]))

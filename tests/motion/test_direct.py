@@ -49,6 +49,25 @@ def test_converges_back_to_the_truth_from_a_perturbed_start(ideal):
         assert 0.9 < out.gain.item() < 1.1 and abs(out.offset.item()) < 0.05  # no exposure change in these frames
 
 
+def test_the_right_image_as_a_second_residual_converges_with_its_own_brightness(ideal, monkeypatch):
+    # a stereo frame: the new right image seen through the point's new disparity, with its own brightness model.
+    # A wrong sign or scale of the right camera's shift (tens of pixels at these depths) would keep it far off;
+    # a right camera 20 % darker than the left must not matter. It runs on the torch path.
+    from egorefine.motion import _direct_numba
+
+    monkeypatch.setattr(_direct_numba, "refine_compiled", lambda *a, **k: pytest.fail("the compiled path ran"))
+    for t in (1, 2):
+        gt = ideal.motions[t][None].float()
+        start = se3_exp(_OFF) @ gt
+        for right in (ideal.right[t : t + 1], ideal.right[t : t + 1] * 0.8 + 0.05):
+            out = refine_motion_direct(*_args(ideal, t), start, right_image=right)
+            assert out.status.tolist() == [DIRECT_STATUS["refined"]]
+            t0, r0 = _errors(start[0], gt[0])
+            t1, r1 = _errors(out.motion[0], gt[0])
+            assert t1 < 0.2 * t0 and r1 < 0.2 * r0, (t0, t1, r0, r1)
+            assert 0.9 < out.gain.item() < 1.1  # the left camera's model: no exposure change there
+
+
 def test_a_black_frame_or_no_disparity_returns_the_input_flagged(ideal):
     args = list(_args(ideal, 1))
     start = se3_exp(_OFF) @ ideal.motions[1][None].float()
