@@ -66,6 +66,12 @@ def test_the_right_image_as_a_second_residual_converges_with_its_own_brightness(
             t1, r1 = _errors(out.motion[0], gt[0])
             assert t1 < 0.2 * t0 and r1 < 0.2 * r0, (t0, t1, r0, r1)
             assert 0.9 < out.gain.item() < 1.1  # the left camera's model: no exposure change there
+    # a black, white or overexposed right image: the input comes back, flagged, never NaN
+    start = se3_exp(_OFF) @ ideal.motions[1][None].float()
+    right = ideal.right[1:2]
+    for bad in (torch.zeros_like(right), torch.ones_like(right), (right * 4).clamp(max=1.0)):
+        out = refine_motion_direct(*_args(ideal, 1), start, right_image=bad)
+        assert out.status.item() != DIRECT_STATUS["refined"] and torch.equal(out.motion, start)
 
 
 def test_a_black_frame_or_no_disparity_returns_the_input_flagged(ideal):
