@@ -55,7 +55,7 @@ from .matching import (
     StereoOutput,
     _check_inputs,
     _despeckle,
-    _mask_untextured_numpy,
+    _mask_untextured_compiled,
     _select,
     _sgm_penalties,
 )
@@ -156,7 +156,7 @@ def match_sgm_band(
             "differentiable": False, "soft_radius": None, "temperature": 1.0, "cost_floor": COST_FLOORS["census"],
             "scale": scale, "min_disparity": min_disparity}
     if use_compiled(grey_l, grey_r) and wb >= 2:
-        out = _mask_untextured_numpy(
+        out = _mask_untextured_compiled(
             _band_numba.match_band(grey_l, grey_r, lo, wb, max_disparity, min_disparity, block_size, census_window,
                                    p1, p2, sgm_paths, opts),
             grey_l, block_size, prefilter_cap, texture_threshold)

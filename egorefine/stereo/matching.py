@@ -395,7 +395,7 @@ def _sgm_penalties(cost: str, census_window: int, sgm_p1: float | None, sgm_p2: 
     return (p1 if sgm_p1 is None else sgm_p1) * scale, (p2 if sgm_p2 is None else sgm_p2) * scale
 
 
-def _mask_untextured_numpy(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey_l: torch.Tensor,
+def _mask_untextured_compiled(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey_l: torch.Tensor,
                            block_size: int, prefilter_cap: float, texture_threshold: float) -> StereoOutput:
     """A compiled matcher's fresh CPU ``(disparity, valid, variance)`` with the texture check applied and the
     maps cleared where not valid, in place in one compiled pass (:mod:`egorefine.stereo._texture_numba`: the
@@ -444,7 +444,7 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
     if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
         # CPU inference: census, SGM and selection compiled (the same float32 results as below), then the texture
         # check and the masking in numpy (no torch pass over the full maps)
-        return _mask_untextured_numpy(
+        return _mask_untextured_compiled(
             _sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size, census_window,
                                          p1, p2, sgm_paths, opts)[:3],
             grey_l, block_size, prefilter_cap, texture_threshold)
