@@ -443,7 +443,7 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
         p1, p2 = _sgm_penalties(cost, census_window, sgm_p1, sgm_p2, opts["scale"])
     if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
         # CPU inference: census, SGM and selection compiled (the same float32 results as below), then the texture
-        # check and the masking in numpy (no torch pass over the full maps)
+        # check and the masking in one compiled pass (no torch pass over the full maps)
         return _mask_untextured_compiled(
             _sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size, census_window,
                                          p1, p2, sgm_paths, opts)[:3],
