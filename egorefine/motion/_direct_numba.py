@@ -65,9 +65,10 @@ if AVAILABLE:
     from ._solve_numba import _se3_exp
 
     def _make_blur(fused: bool):
-        """The separable blur kernel, with fused multiply-adds or without (kornia's two CPU paths round so)."""
+        """The separable blur kernel, with fused multiply-adds or without (kornia's two CPU paths round so). Each
+        form gets its own name: numba's cache tells functions apart by qualified name and line, and two closures
+        of one definition would otherwise load each other's compiled code."""
 
-        @_jit(fastmath={"contract"} if fused else False)
         def blur(src, k, pad, tmp, out):
             """gaussian_blur2d of ``src (H, W)`` float32 with the 1-D taps ``k`` along rows then columns, borders
             repeated, each tap's product added in tap order; ``pad (W + len(k) - 1,)`` and ``tmp (H, W)`` are work
@@ -102,7 +103,8 @@ if AVAILABLE:
                     for i in range(W):
                         o[i] = o[i] + s[i] * kt
 
-        return blur
+        blur.__name__ = blur.__qualname__ = "_blur_fused" if fused else "_blur_plain"
+        return _jit(fastmath={"contract"} if fused else False)(blur)
 
     _blur_plain = _make_blur(False)
     _blur_fused = _make_blur(True)
