@@ -21,8 +21,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
-from ..core._jit import bands as _bands
+from ..core._jit import AVAILABLE, Workers, frame_bands
 from ..core._jit import jit as _jit
 from ._splat_numba import _BIG, _F, _MIN
 
@@ -284,7 +283,7 @@ def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.T
             np.empty((B, H, W), np.float32)]
     kd, kv, kok = (t.contiguous().numpy() for t in (key_disparity, key_variance, key_valid))
     Gn, en = G.numpy(), e.numpy()
-    bands = _bands(H, threads)
+    bands = frame_bands(H, threads)
     args = (max(1, int(iterations)), _F(tolerance), _F(surface_tolerance), _F(process_noise))
 
     def band(job: tuple[int, tuple[int, int]]) -> int:
@@ -316,7 +315,7 @@ def finish_prediction(disparity: torch.Tensor, variance: torch.Tensor, valid: to
         i, (y0, y1) = job
         _finish(kd[i], kv[i], kok[i], Gn[i], en[i], *args, y0, y1, *(m[i] for m in maps))
 
-    Workers(threads).map(band, [(i, rows) for i in range(B) for rows in _bands(H, threads)])
+    Workers(threads).map(band, [(i, rows) for i in range(B) for rows in frame_bands(H, threads)])
 
 
 def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int, base: torch.Tensor | None = None,
@@ -331,7 +330,7 @@ def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int, bas
     out = np.empty((B, H, W), np.float32)
     Workers(threads).map(lambda job: _edge_variance(d[job[0]], ok[job[0]], radius, *job[1], bn[job[0]], has_base,
                                                     out[job[0]]),
-                         [(i, rows) for i in range(B) for rows in _bands(H, threads)])
+                         [(i, rows) for i in range(B) for rows in frame_bands(H, threads)])
     return torch.from_numpy(out)
 
 

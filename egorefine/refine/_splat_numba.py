@@ -38,8 +38,7 @@ import threading
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
-from ..core._jit import bands as _bands
+from ..core._jit import AVAILABLE, Workers, frame_bands
 from ..core._jit import jit as _jit
 
 __all__ = ["AVAILABLE", "hard_splat"]
@@ -359,7 +358,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     variance = np.empty((B, H, W), np.float32)
     confidence = np.empty((B, H, W), np.float32)
     landed = np.empty((B, H, W), np.bool_)
-    bands = _bands(H, threads)
+    bands = frame_bands(H, threads)
     noise, hole = _F(process_noise), _F(hole_variance)
 
     def item(i: int, run) -> bool:
