@@ -12,8 +12,8 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["AVAILABLE", "BANDS_PER_THREAD", "MIN_SPLIT_PIXELS", "Workers", "bands", "frame_bands", "jit", "numba",
-           "split"]
+__all__ = ["AVAILABLE", "MIN_SPLIT_PIXELS", "Workers", "bands", "frame_bands", "jit", "numba",
+           "SHARES_PER_THREAD", "split"]
 
 try:
     import numba
@@ -74,16 +74,16 @@ def bands(n: int, parts: int) -> list[tuple[int, int]]:
     return [(start, min(n, start + step)) for start in range(0, n, step)]
 
 
-# Bands per thread for the per-frame kernels of a prediction (the splat, crack closing): with a few bands per thread
-# a worker that wakes late takes fewer of them (Workers.map hands out items one at a time), where with one band each
-# the frame waits for its band (docs/decisions.md, "Bands per thread").
-BANDS_PER_THREAD = 4
+# Shares of a kernel's work per worker thread (row bands of the splat and crack closing, the tracker's features):
+# Workers.map deals items one at a time, so with a few shares per thread a worker that wakes late takes fewer of
+# them, where with one share each the frame waits for its share (docs/decisions.md, "Shares per thread").
+SHARES_PER_THREAD = 4
 
 
 def frame_bands(n: int, threads: int) -> list[tuple[int, int]]:
-    """:func:`bands` of ``n`` rows for ``threads`` workers, :data:`BANDS_PER_THREAD` per worker (one band for one
+    """:func:`bands` of ``n`` rows for ``threads`` workers, :data:`SHARES_PER_THREAD` per worker (one band for one
     thread: nothing to balance)."""
-    return bands(n, threads * BANDS_PER_THREAD if threads > 1 else 1)
+    return bands(n, threads * SHARES_PER_THREAD if threads > 1 else 1)
 
 
 # Work below this many pixels runs as one job: a thread hand-off costs more than splitting it saves.

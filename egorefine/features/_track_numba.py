@@ -35,7 +35,7 @@ import math
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, SHARES_PER_THREAD, Workers
 from ..core._jit import jit as _jit
 
 # the torch path pads feature subsets to multiples of this many slots; the loops repeat its sizes
@@ -47,8 +47,6 @@ _F = np.float32
 # Features per thread below which one thread does all (a hand-off to a pool thread costs tens of
 # microseconds, as much as a few dozen level-0 tracks).
 _MIN_PER_THREAD = 48
-# shares of the feature list per worker thread (_Runner)
-_SHARES_PER_THREAD = 4
 
 
 if AVAILABLE:
@@ -469,7 +467,7 @@ class _Runner:
         ``_MIN_PER_THREAD``, a few per thread: a thread that starts late takes fewer (:meth:`Workers.map`)."""
         idx = np.flatnonzero(mask)
         parts = max(1, min(self.threads, math.ceil(len(idx) / _MIN_PER_THREAD)))
-        count = 1 if parts == 1 else max(parts, min(_SHARES_PER_THREAD * parts, len(idx) // _MIN_PER_THREAD))
+        count = 1 if parts == 1 else max(parts, min(SHARES_PER_THREAD * parts, len(idx) // _MIN_PER_THREAD))
         shares = [np.ascontiguousarray(idx[i::count]) for i in range(count)]
         Workers(parts).map(lambda share: kernel(*args, share), shares)
 

@@ -76,12 +76,12 @@ def test_workers_map_shares_items_with_the_caller_and_is_a_barrier():
 
 
 def test_frame_bands_cover_the_rows_once_with_a_few_bands_per_thread():
-    from egorefine.core._jit import BANDS_PER_THREAD, frame_bands
+    from egorefine.core._jit import SHARES_PER_THREAD, frame_bands
 
     for n, threads in ((480, 2), (375, 2), (7, 4), (1, 2), (480, 1)):
         bands = frame_bands(n, threads)
         assert bands[0][0] == 0 and bands[-1][1] == n
-        assert all(a[1] == b[0] for a, b in zip(bands, bands[1:]))  # contiguous, no overlap
+        assert all(a[1] == b[0] for a, b in zip(bands[:-1], bands[1:], strict=True))  # contiguous, no overlap
         assert all(start < stop for start, stop in bands)
-        assert len(bands) <= (threads * BANDS_PER_THREAD if threads > 1 else 1)
-    assert len(frame_bands(480, 2)) == 2 * BANDS_PER_THREAD
+        assert len(bands) <= (threads * SHARES_PER_THREAD if threads > 1 else 1)
+    assert len(frame_bands(480, 2)) == 2 * SHARES_PER_THREAD
