@@ -74,9 +74,10 @@ def bands(n: int, parts: int) -> list[tuple[int, int]]:
     return [(start, min(n, start + step)) for start in range(0, n, step)]
 
 
-# Shares of a kernel's work per worker thread (row bands of the splat and crack closing, the tracker's features):
-# Workers.map deals items one at a time, so with a few shares per thread a worker that wakes late takes fewer of
-# them, where with one share each the frame waits for its share (docs/decisions.md, "Shares per thread").
+# Shares of a kernel's work per worker thread (row bands of the splat, crack closing and the edge variance; the
+# tracker's features): Workers.map deals items one at a time, so with a few shares per thread a worker that wakes
+# late takes fewer of them, where with one share each the frame waits for its share (docs/decisions.md, "Shares
+# per thread").
 SHARES_PER_THREAD = 4
 
 
