@@ -280,7 +280,7 @@ def check_positive(x: torch.Tensor, name: str) -> None:
 
 
 def check_image(
-    x: torch.Tensor, name: str, bound: dict[str, int] | None = None, min_size: int = 1
+    x: torch.Tensor, name: str, bound: dict[str, int] | None = None, min_size: int = 1, values: bool = True
 ) -> dict[str, int]:
     """Check a float image batch ``(B, C, H, W)``: C in {1, 3}, B >= 1, values in [0, 1] and no NaN/Inf.
 
@@ -292,6 +292,8 @@ def check_image(
         name: the argument's name, used in the error message.
         bound: sizes bound by earlier checks (see :func:`check_shape`); updated in place.
         min_size: the smallest height and width the caller's filters work on; default 1 (any image).
+        values: also check the values (a pass over the image); False for an image that a caller reads only on
+            some calls, and checks there.
 
     Returns:
         the bindings ``{"B", "H", "W"}`` (and those of ``bound``).
@@ -315,10 +317,11 @@ def check_image(
         raise ShapeError(f"{name}: expected a batch of at least one image, got shape {_fmt(x.shape)}")
     if min(x.shape[-2:]) < min_size:
         raise ShapeError(f"{name}: expected at least {min_size} px per side, got shape {_fmt(x.shape)}")
-    extremes = _extremes(x)
-    if extremes is None:
+    if x.numel() == 0:
         raise ShapeError(f"{name}: expected a non-empty image, got shape {_fmt(x.shape)}")
-    low, high = extremes
+    if not values:
+        return dims
+    low, high = _extremes(x)
     if not (np.isfinite(low) and np.isfinite(high)):
         raise ValueRangeError(f"{name}: contains NaN or Inf")
     if low < -IMAGE_RANGE_TOLERANCE or high > 1.0 + IMAGE_RANGE_TOLERANCE:

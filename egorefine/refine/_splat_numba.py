@@ -48,6 +48,7 @@ _F = np.float32
 _MIN = _F(1e-3)  # _MIN_DEPTH_RATIO
 _BIG = _F(min(1e30, float(np.finfo(np.float32).max) ** 0.5))  # _big(float32)
 _PAD = 2  # margin of the padded source layout (_splat._PAD)
+_TOP = _F(np.finfo(np.float32).max)
 
 
 if AVAILABLE:
@@ -74,8 +75,8 @@ if AVAILABLE:
     def _move_sources(d, valid, var, has_var, A, a, y0, y1, key_src, key_new, var_p, at):
         """Step 1 for source rows ``y0:y1`` of one batch item: move the points (eq. 1), write the padded source
         maps (``-big`` where invalid) and each point's z-buffer cell ``at``. ``valid``: ``(H, W)``, or ``(1, W)`` of
-        True for all. Returns whether a disparity is not finite (the caller raises: checked here rather than by a
-        torch pass over the map)."""
+        True for all. Returns whether a disparity is not finite or a variance not finite and >= 0 (the caller
+        raises: checked here rather than by passes over the maps)."""
         H, W = d.shape
         wp = key_src.shape[1]
         a00, a01, a02, a10, a11, a12 = A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2]
@@ -106,7 +107,9 @@ if AVAILABLE:
                 var_row, var_prow = var[y], var_p[y + _PAD, _PAD:_PAD + W]
                 for x in range(W):
                     inv = _F(1.0) / max(((a20 * xs[x] + a22) + r2) + d_row[x] * m2, _MIN)
-                    var_prow[x] = var_row[x] * inv * inv
+                    v = var_row[x]
+                    bad |= not ((v >= _F(0.0)) & (v <= _TOP))  # (NaN fails both)
+                    var_prow[x] = v * inv * inv
         if has_var:  # replicated margins: a target just outside takes the border's variance
             for y in range(y0 + _PAD, y1 + _PAD):
                 for x in range(_PAD):
@@ -171,7 +174,7 @@ if AVAILABLE:
 
     @_jit(error_model="numpy")
     def _targets(zbuf, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1, fill_holes,
-                 process_noise, hole_variance, later, landed, disparity, variance, confidence):
+                 process_noise, hole_variance, later, landed, hole, disparity, variance, confidence):
         """Steps 2 and 3 for target rows ``y0:y1`` of one batch item. A row without a landed pixel is filled later,
         from the whole image (marked in ``later``; its outputs other than ``landed`` are left to the caller).
 
@@ -273,10 +276,11 @@ if AVAILABLE:
                                                         xs[x], est, g0[x], g1[x], g2[x], g3[x])
                         est_r[x] = new if hz_ok & qz_ok & land_r[x] else est
             # -- outputs: the background hole fill (predict.fill_holes_background), variance and confidence
-            land_out, d_out, v_out, c_out = landed[y], disparity[y], variance[y], confidence[y]
+            land_out, hole_out, d_out, v_out, c_out = landed[y], hole[y], disparity[y], variance[y], confidence[y]
             count = 0
             for x in range(W):
                 land_out[x] = land_r[x]
+                hole_out[x] = not land_r[x]
                 count += np.int32(land_r[x])  # (an int32 sum: vectorised, where an int64 one would not be)
             later[y] = fill_holes and count == 0
             if later[y]:  # no landed pixel: filled with the image's smallest landed value (by the caller)
@@ -345,7 +349,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     Returns:
         ``(disparity, variance, confidence, landed, hole)`` each ``(B, H, W)``, as ``predict_disparity``'s fields
         (holes filled or 0, ``hole_variance`` and confidence 0 on holes; ``hole = ~landed``); None if ``d`` holds
-        NaN or Inf.
+        NaN or Inf or ``var`` a value that is not finite and >= 0.
     """
     B, H, W = d.shape
     threads = max(1, threads or torch.get_num_threads())
@@ -358,8 +362,9 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     variance = np.empty((B, H, W), np.float32)
     confidence = np.empty((B, H, W), np.float32)
     landed = np.empty((B, H, W), np.bool_)
+    hole = np.empty((B, H, W), np.bool_)
     bands = frame_bands(H, threads)
-    noise, hole = _F(process_noise), _F(hole_variance)
+    noise, hole_var = _F(process_noise), _F(hole_variance)
 
     def item(i: int, run) -> bool:
         key_src, key_new, var_p, zbuf, at = _workspace(H, W, var is not None)
@@ -369,17 +374,17 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
         zbuf.fill(-1)
         _scatter(at, key_new, zbuf, var_p, var is not None)
         later = np.empty(H, np.bool_)
-        outs = (landed[i], disparity[i], variance[i], confidence[i])
+        outs = (landed[i], hole[i], disparity[i], variance[i], confidence[i])
         run(lambda band: _targets(zbuf, key_src, key_new, var_p, var is not None, An[i], an[i], Gn[i], en[i], tol,
-                                  refine_iterations, band[0], band[1], fill_holes, noise, hole, later, *outs), bands)
+                                  refine_iterations, band[0], band[1], fill_holes, noise, hole_var, later, *outs),
+            bands)
         if later.any():  # rows without a landed pixel: the smallest landed value of the image (0 if none)
             values = disparity[i][landed[i]]
-            _fill(_F(values.min()) if values.size else _F(0.0), hole, later, *outs[1:])
+            _fill(_F(values.min()) if values.size else _F(0.0), hole_var, later, *outs[2:])
         return True
 
     workers = Workers(threads)
     if not all(item(i, workers.map) for i in range(B)):
         return None
     as_t = torch.from_numpy
-    # (numpy's not: a torch op on a full map would wake torch's OpenMP threads beside the next kernels)
-    return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed), as_t(np.logical_not(landed))
+    return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed), as_t(hole)

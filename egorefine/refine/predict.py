@@ -258,7 +258,7 @@ def predict_disparity(
     check_choice(mode, ["hard", "soft"], "mode")
     if variance is not None:
         check_shape(variance, ["B", "1", "H", "W"], "variance", dims)
-        check_variance(variance, "variance")
+        check_float(variance, "variance")
     if valid is not None:
         check_shape(valid, ["B", "1", "H", "W"], "valid", dims)
         if valid.dtype != torch.bool:
@@ -282,8 +282,10 @@ def predict_disparity(
     compiled = hard_refined and use_compiled(
         disparity, valid, *learnable,
         *(t.to(disparity.dtype) for t in (variance, motion, K, baseline) if t is not None))
-    if not compiled:
-        check_finite(disparity, "disparity")  # (the compiled path tests it inside its kernels)
+    if not compiled:  # (the compiled path tests these inside its kernels)
+        check_finite(disparity, "disparity")
+        if variance is not None:
+            check_variance(variance, "variance")
     settings = (mode, process_noise, hole_variance, fill_holes, temperature, refine_iterations, surface_tolerance)
     if fast and _graphs.usable(disparity, motion, K, baseline):
         # CUDA inference: the splat's ~150 launches replayed from a CUDA graph recorded per shape and settings
@@ -354,8 +356,10 @@ def _predict(
             None if valid is None else valid[:, 0].contiguous(), A, a, G, e, surface_tolerance, refine_iterations,
             fill_holes, process_noise, hole_variance,
         )
-        if out is None:  # NaN or Inf in the disparity
+        if out is None:  # NaN or Inf in the disparity, or a variance not finite and >= 0
             check_finite(disparity, "disparity")
+            check_variance(variance, "variance")
+            raise ValueRangeError(f"variance: expected finite values >= 0 in {dtype}")  # (beyond its range)
         est, out_var, confidence, landed, hole = out
         return Prediction(est[:, None], out_var[:, None], hole[:, None], landed[:, None], confidence[:, None])
     src_ok = d >= 0

@@ -97,6 +97,15 @@ _SCALE_RANGE = (1e-3, 1e3)
 _OFFSET_BOUND = 2.0
 
 
+def _grey_right(right: torch.Tensor | None) -> torch.Tensor | None:
+    """The right image checked for values (its shape was checked with the left one's) and in grey, or None: once
+    a frame, on the frames that match it (stereo, local search and hole search all match grey)."""
+    if right is None:
+        return None
+    check_image(right, "right")
+    return to_grey(right)
+
+
 def _net_output(net: nn.Module, x: torch.Tensor, meas: StereoOutput, name: str) -> torch.Tensor:
     """``net(x)``, checked: a tensor of the measurement's shape (``ShapeError``), finite (``ValueRangeError``)."""
     out = net(x)
@@ -352,8 +361,8 @@ class EgoMotionRefiner(nn.Module):
         state: RefinerState | None,
     ) -> None:
         dims = check_image(left, "left")
-        if right is not None:
-            check_image(right, "right", dims)
+        if right is not None:  # (its values on the frames that read it: _grey_right)
+            check_image(right, "right", dims, values=False)
             if right.device != left.device:
                 raise DeviceError(f"right: on {right.device}, but left is on {left.device}")
         check_intrinsics(K, "K", dims)
@@ -513,7 +522,8 @@ class EgoMotionRefiner(nn.Module):
 
         Args:
             left: ``(B, 1|3, H, W)`` left image in [0, 1].
-            right: ``(B, 1|3, H, W)`` right image, or None on frames that do not need stereo.
+            right: ``(B, 1|3, H, W)`` right image, or None on frames that do not need stereo. Its shape is
+                checked on every frame, its values (range, NaN / Inf) on the frames that read it.
             K: ``(B, 3, 3)`` rectified left intrinsics.
             baseline: ``(B,)`` metres.
             state: the previous call's state, or None to start a sequence.
@@ -523,11 +533,10 @@ class EgoMotionRefiner(nn.Module):
         """
         self._check_inputs(left, right, K, baseline, state)
         grey = to_grey(left)
-        right = None if right is None else to_grey(right)  # once: stereo, local search and holes all match grey
         B = grey.shape[0]
         eye = torch.eye(4, device=grey.device, dtype=grey.dtype).expand(B, 4, 4)
         if state is None:
-            return self._first_frame(grey, right, eye)
+            return self._first_frame(grey, _grey_right(right), eye)
 
         frame = state.frame + 1
         # 1. track features of t-1 into t, search centred by constant velocity.
@@ -596,6 +605,9 @@ class EgoMotionRefiner(nn.Module):
             coverage = pred.valid.flatten(1).float().mean(1)
             conf = pred.confidence.flatten(1).mean(1)
         stereo_ran = self._needs_stereo(frame, ok, coverage, conf)
+        # (a frame without stereo, local search or hole search does not read the right image)
+        uses_right = stereo_ran or self.search.local_search or self.search.measure_holes
+        right = _grey_right(right) if uses_right else None
 
         disparity, variance, valid, outliers = pred.disparity, pred.variance, pred.valid, state.outlier_count
         confidence = pred.confidence

@@ -129,6 +129,18 @@ def test_identity_motion_is_exact(mode):
     assert torch.allclose(pred.confidence, 1 / (1 + var + 0.01))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])  # the compiled path's in-kernel test, torch's
+@pytest.mark.parametrize("bad", [-1.0, math.nan, math.inf])
+def test_bad_variance_is_refused(dtype, bad):
+    K = make_intrinsics(20.0, 7.5, 5.5, dtype=dtype)
+    d, M, b = _fronto(2.0).to(dtype), _translation().to(dtype), torch.tensor([0.1], dtype=dtype)
+    var = torch.full_like(d, 0.5)
+    predict_disparity(d, M, K, b, variance=var)  # (a good one passes)
+    var[..., 3, 5] = bad
+    with pytest.raises(ValueRangeError, match="variance"):
+        predict_disparity(d, M, K, b, variance=var)
+
+
 def test_exceptions():
     K = make_intrinsics(20.0, 7.5, 5.5, dtype=torch.float64)
     d, M, b = _fronto(2.0), _translation(), torch.tensor([0.1])

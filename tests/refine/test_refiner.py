@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import egorefine
-from egorefine.core import StateError, ValueRangeError, _jit
+from egorefine.core import ShapeError, StateError, ValueRangeError, _jit
 from egorefine.data import render_sequence
 from egorefine.metrics import rotation_error_deg, translation_error
 from egorefine.refine import EgoMotionRefiner, RefinerState, StereoOptions, refine_sequence
@@ -105,6 +105,28 @@ def test_right_is_only_needed_on_verification_frames(small_seq):
     out, state = refiner(small_seq.left[2:3], None, K, b, state)
     with pytest.raises(ValueRangeError, match="right: frame 3 needs stereo"):
         refiner(small_seq.left[3:4], None, K, b, state)
+
+
+def test_right_values_are_checked_where_they_are_read(small_seq):
+    """A bad right image on a frame without stereo is not read (the outputs equal a good one's), on a stereo frame
+    it is refused; its shape is checked on every frame."""
+    refiner = EgoMotionRefiner(verify_every=3, **SMALL)
+    K, b = small_seq.K[None], torch.tensor([small_seq.baseline])
+    _, state = refiner(small_seq.left[:1], small_seq.right[:1], K, b)
+    bad = small_seq.right[1:2].clone()
+    bad[..., 4, 7] = float("nan")
+    good_out, _ = refiner(small_seq.left[1:2], small_seq.right[1:2], K, b, state)
+    out, state = refiner(small_seq.left[1:2], bad, K, b, state)
+    assert not out.stereo_ran and torch.equal(out.disparity, good_out.disparity)
+    with pytest.raises(ShapeError, match="right"):
+        refiner(small_seq.left[2:3], bad[..., :-1], K, b, state)
+    _, state = refiner(small_seq.left[2:3], small_seq.right[2:3], K, b, state)
+    bad = small_seq.right[3:4].clone()
+    bad[..., 4, 7] = float("nan")
+    with pytest.raises(ValueRangeError, match="right: contains NaN"):
+        refiner(small_seq.left[3:4], bad, K, b, state)
+    with pytest.raises(ValueRangeError, match="right: expected values in"):
+        refiner(small_seq.left[3:4], small_seq.right[3:4] * 255, K, b, state)
 
 
 def test_bad_state_and_inputs(small_seq):
