@@ -108,6 +108,32 @@ if AVAILABLE:
                     o[i] = mi if (whole | ((r[i] != 0) & (not kept))) else (pi if kept else ci)
 
     @_jit
+    def _overrule_inplace(corrected, predicted, measured, regions, keep, restart, start, stop):
+        """_overrule with ``out`` = ``corrected``, a block of pixels at a time through a small buffer: a loop that
+        stores a select of a value and the one it loads from the same place is turned into conditional stores,
+        which stay scalar code; two loops (the selects into the buffer, its copy back) are SIMD code."""
+        block = 256
+        buf = np.empty(block, corrected.dtype)
+        for b in range(corrected.shape[0]):
+            whole, kept = restart[b] != 0, (keep[b] != 0) & (restart[b] == 0)
+            c, r = corrected[b, start:stop], regions[b, start:stop]
+            p, m = (c, c) if predicted is None else (predicted[b, start:stop], measured[b, start:stop])
+            zero = c.dtype.type(0)
+            for s0 in range(0, c.shape[0], block):
+                n = min(block, c.shape[0] - s0)
+                cb, rb, pb, mb = c[s0:s0 + n], r[s0:s0 + n], p[s0:s0 + n], m[s0:s0 + n]
+                if predicted is None:  # (measured too: the outlier count, 0 where taken)
+                    for i in range(n):
+                        ci = cb[i]
+                        buf[i] = zero if (whole | kept | (rb[i] != 0)) else ci
+                else:
+                    for i in range(n):
+                        ci, pi, mi = cb[i], pb[i], mb[i]
+                        buf[i] = mi if (whole | ((rb[i] != 0) & (not kept))) else (pi if kept else ci)
+                for i in range(n):
+                    cb[i] = buf[i]
+
+    @_jit
     def _within(x, low, high):
         """Whether every entry of the flat ``x`` lies in ``[low, high]`` (NaN does not)."""
         inside = True
@@ -172,19 +198,25 @@ def confidence(valid: torch.Tensor, variance: torch.Tensor, threads: int | None 
 def overrule(maps: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
              predicted: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
              measured: tuple[torch.Tensor, torch.Tensor, torch.Tensor], keep: torch.Tensor, restart: torch.Tensor,
-             regions: torch.Tensor, threads: int | None = None
+             regions: torch.Tensor, threads: int | None = None, inplace: bool = False
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """A verification's recovery rules (``refine._steps._overrule``) on CPU maps ``(B, 1, H, W)``: ``maps`` the
     corrected ``(disparity, variance, valid, outliers)``, ``predicted`` and ``measured`` ``(disparity, variance,
-    valid)`` (float32, bool masks), ``regions`` bool, ``keep`` and ``restart`` ``(B,)`` bool; new ``maps``."""
+    valid)`` (float32, bool masks), ``regions`` bool, ``keep`` and ``restart`` ``(B,)`` bool; new ``maps``, or with
+    ``inplace`` (contiguous ``maps`` that nothing else reads) ``maps`` themselves, changed."""
     B, shape = maps[0].shape[0], maps[0].shape
     items = [_bytes(t.detach().contiguous().reshape(B, -1).numpy())
              for t in (*maps, *predicted, *measured, regions)]
     corrected, pm, mm, reg = items[:4], items[4:7], items[7:10], items[10]
     flags = [_bytes(t.detach().contiguous().numpy()) for t in (keep, restart)]
-    outs = [np.empty_like(c) for c in corrected]
     threads = max(1, threads or torch.get_num_threads())
     work = [(k, c) for k in range(4) for c in _split(reg.shape[1], threads)]
+    if inplace:
+        Workers(threads).map(lambda job: _overrule_inplace(corrected[job[0]], pm[job[0]] if job[0] < 3 else None,
+                                                           mm[job[0]] if job[0] < 3 else None, reg, *flags,
+                                                           *job[1]), work)
+        return maps
+    outs = [np.empty_like(c) for c in corrected]
     Workers(threads).map(lambda job: _overrule(corrected[job[0]], pm[job[0]] if job[0] < 3 else None,
                                                mm[job[0]] if job[0] < 3 else None, reg, *flags, *job[1],
                                                outs[job[0]]), work)

@@ -57,6 +57,21 @@ def _take_hole_measurements(
             torch.where(take, torch.zeros_like(outliers), outliers), _confidence(valid, variance))
 
 
+def _owned(maps: tuple[torch.Tensor, ...], *others: object) -> bool:
+    """Whether no tensor among ``others`` (tensors, or tuples of them, e.g. a state or a prediction; anything else
+    skipped) shares memory with one of ``maps``, nor two of ``maps`` with each other: then a kernel may write
+    ``maps`` in place without changing what ``others`` hold."""
+    storages = [m.untyped_storage().data_ptr() for m in maps]
+    if len(set(storages)) < len(storages):
+        return False
+    seen = set()
+    for item in others:
+        for t in item if isinstance(item, tuple) else (item,):
+            if isinstance(t, torch.Tensor):
+                seen.add(t.untyped_storage().data_ptr())
+    return not set(storages) & seen
+
+
 def _overrule(
     maps: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
     pred: Prediction,
@@ -64,18 +79,23 @@ def _overrule(
     keep: torch.Tensor,
     restart: torch.Tensor,
     regions: torch.Tensor,
+    owned: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The corrected ``(disparity, variance, valid, outliers)`` with the recovery rules of a verification applied:
     items in ``restart`` ``(B,)`` take the measurement whole (their motion failed), items in ``keep`` ``(B,)`` the
     prediction whole (their stereo failed), and elsewhere the pixels of ``regions`` ``(B, 1, H, W)`` take the
     measurement; taken pixels get a zero outlier count. Float32 CPU maps without gradient take one compiled pass
-    per map (:func:`egorefine.refine._fuse_numba.overrule`), others the same rule in torch."""
+    per map (:func:`egorefine.refine._fuse_numba.overrule`), others the same rule in torch. ``owned``: ``maps``
+    are the caller's alone (no other tensor shares their memory), so the compiled pass may write them in place
+    (no fresh maps to fault in)."""
     disparity, variance, valid, outliers = maps
     masks = (valid, pred.valid, meas.valid, regions, keep, restart)
     if all(m.dtype == torch.bool for m in masks) and use_compiled(  # (the kernel reads bool masks)
             disparity, variance, outliers, pred.disparity, pred.variance, meas.disparity, meas.variance, *masks):
+        inplace = owned and all(m.is_contiguous() for m in maps)
         return _fuse_numba.overrule(maps, (pred.disparity, pred.variance, pred.valid),
-                                    (meas.disparity, meas.variance, meas.valid), keep, restart, regions)
+                                    (meas.disparity, meas.variance, meas.valid), keep, restart, regions,
+                                    inplace=inplace)
     item_keep, item_restart = keep[:, None, None, None], restart[:, None, None, None]
     take = (regions & ~item_keep) | item_restart
 

@@ -46,7 +46,7 @@ from ..stereo import StereoOutput, fill_invalid, match_residual, match_stereo, m
 from ..stereo.band import match_sgm_band
 from ..stereo.matching import _TEMPERATURES
 from ..stereo.scale import match_half_resolution
-from ._steps import _confidence, _expected_positions, _overrule, _take_hole_measurements
+from ._steps import _confidence, _expected_positions, _overrule, _owned, _take_hole_measurements
 from .correct import correct_disparity, edge_variance
 from .cracks import finish_prediction
 from .health import (
@@ -636,8 +636,11 @@ class EgoMotionRefiner(nn.Module):
             status = status | flag(reset_items, Status.PREDICTION_RESET)
             # Where the motion failed the prediction is meaningless: that item restarts from stereo.
             if bool(rejected.any()) or bool(reset_items.any()) or not bool(ok.all()):
-                disparity, variance, valid, outliers = _overrule(
-                    (disparity, variance, valid, outliers), pred, meas, keep=rejected, restart=~ok, regions=reset)
+                maps = (disparity, variance, valid, outliers)
+                # (the correction's maps are fresh unless it passed an input through: then out of place)
+                owned = _owned(maps, *pred, *meas, *state, matched)
+                disparity, variance, valid, outliers = _overrule(maps, pred, meas, keep=rejected, restart=~ok,
+                                                                 regions=reset, owned=owned)
             confidence = _confidence(valid, variance)
         elif self.search.local_search and right is not None:
             # 4'. no stereo on this frame: a narrow residual search around the prediction corrects it.

@@ -173,12 +173,26 @@ def test_overrule_compiled_and_torch_agree(shape, monkeypatch):
     keep, restart = torch.tensor([False, True, False, True]), torch.tensor([False, False, True, True])
     regions = torch.rand(shape, generator=g) > 0.5
     fast = _overrule(corrected, pred, meas, keep, restart, regions)
+    mine = tuple(t.clone() for t in corrected)
+    in_place = _overrule(mine, pred, meas, keep, restart, regions, owned=True)
+    assert all(a is b for a, b in zip(in_place, mine, strict=True))  # written in place: the same tensors back
     monkeypatch.setattr(dispatch, "ENABLED", False)
     reference = _overrule(corrected, pred, meas, keep, restart, regions)
-    for a, b in zip(fast, reference, strict=True):
-        assert torch.equal(a, b)
+    for a, b, c in zip(fast, reference, in_place, strict=True):
+        assert torch.equal(a, b) and torch.equal(c, b)
     assert torch.equal(fast[0][1], pred.disparity[1]) and torch.equal(fast[0][2], meas.disparity[2])
     assert torch.equal(fast[0][3], meas.disparity[3]) and (fast[3][1:] == 0).all()
     take = regions[0]
     assert torch.equal(fast[0][0][take], meas.disparity[0][take]) and (fast[3][0][take] == 0).all()
     assert torch.equal(fast[0][0][~take], corrected[0][0][~take])
+
+
+def test_owned_maps_share_no_memory_with_the_others():
+    from egorefine.refine._steps import _owned
+
+    a, b = torch.zeros(2, 3), torch.ones(2, 3)
+    other = torch.zeros(4)
+    assert _owned((a, b), other, (torch.ones(1), 3), None)
+    assert not _owned((a, b), (other, a[1]))  # a view of a map, inside a tuple (a state's pyramid)
+    assert not _owned((a, a.view(3, 2)))  # two maps on one memory
+    assert not _owned((a, b), 1, b.view(-1))
