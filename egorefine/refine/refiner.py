@@ -40,6 +40,7 @@ from ..core import (
     check_shape,
     to_grey,
 )
+from ..core.memory import keep_freed_memory
 from ..features import build_pyramid, replenish, track
 from ..motion import refine_motion_direct, solve_ego_motion
 from ..stereo import StereoOutput, fill_invalid, match_residual, match_stereo, match_stereo_regions
@@ -154,6 +155,10 @@ class EgoMotionRefiner(nn.Module):
     in the images, ``K``, the baseline and the learnable parameters: the stereo winner, the track search, the
     z-buffer, the gates and every validity test are hard decisions, constant between their switching points.
     ``differentiable=True`` softens the ones that can be softened (docs/gradients.md).
+
+    Memory: on the first frame of a sequence on the CPU the refiner has the C allocator keep freed memory for
+    reuse (:func:`egorefine.core.memory.keep_freed_memory`, process-wide; ``EGOREFINE_KEEP_FREED_MEMORY=0`` leaves
+    it alone): each frame's maps then reuse the last frame's memory instead of faulting in fresh pages.
 
     Args:
         max_disparity: stereo search range ``[min_disparity, max_disparity)``, px; predicted values outside it are
@@ -536,6 +541,8 @@ class EgoMotionRefiner(nn.Module):
         B = grey.shape[0]
         eye = torch.eye(4, device=grey.device, dtype=grey.dtype).expand(B, 4, 4)
         if state is None:
+            if grey.device.type == "cpu":  # a frame's maps reuse the last one's memory, not fresh pages
+                keep_freed_memory()
             return self._first_frame(grey, _grey_right(right), eye)
 
         frame = state.frame + 1
