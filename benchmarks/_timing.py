@@ -18,6 +18,7 @@ import torch
 
 from egorefine.data import StereoSequence
 from egorefine.refine import EgoMotionRefiner
+from egorefine.refine import cracks as _cracks_module
 from egorefine.refine import refiner as _refiner_module
 from egorefine.stereo import matching as _matching_module
 
@@ -32,8 +33,8 @@ STAGES: list[tuple[object, str, str]] = [
     (_refiner_module, "_expected_positions", "tracking"),
     (_refiner_module, "track", "tracking"),
     (_refiner_module, "solve_ego_motion", "motion solve"),
-    (_refiner_module, "predict_disparity", "prediction splat"),
-    (_refiner_module, "finish_prediction", "crack closing"),
+    (_refiner_module, "predict_finished", "prediction splat"),  # (with crack closing where they run fused)
+    (_cracks_module, "finish_prediction", "crack closing"),  # (where they do not)
     (_refiner_module, "_confidence", "confidence"),
     (_refiner_module, "replenish", "feature top-up"),
     (_refiner_module, "match_stereo", "box matcher"),

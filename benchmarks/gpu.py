@@ -39,7 +39,7 @@ MATCHERS = {
     "ZNCC": {"cost": "zncc"},
 }
 LOOPS = [("kalman", 1, 1), ("kalman", 5, 1), ("paper", 5, 1), ("kalman", 5, 4)]
-STAGES = ["track", "solve_ego_motion", "predict_disparity", "finish_prediction", "match_stereo", "correct_disparity",
+STAGES = ["track", "solve_ego_motion", "predict_finished", "match_stereo", "correct_disparity",
           "replenish", "_expected_positions", "build_pyramid"]
 SKIP = 5  # frames left out of the timing (first frame, warm-up)
 

@@ -174,9 +174,13 @@ if AVAILABLE:
 
     @_jit(error_model="numpy")
     def _targets(zbuf, key_src, key_new, var_p, has_var, A, a, G, e, tol, iterations, y0, y1, fill_holes,
-                 process_noise, hole_variance, later, landed, hole, disparity, variance, confidence):
+                 process_noise, hole_variance, later, landed, hole, disparity, variance, confidence, finish, source):
         """Steps 2 and 3 for target rows ``y0:y1`` of one batch item. A row without a landed pixel is filled later,
-        from the whole image (marked in ``later``; its outputs other than ``landed`` are left to the caller).
+        from the whole image (marked in ``later``; its outputs other than ``landed`` and ``hole`` are left to the
+        caller). With ``finish[0] >= 0`` each row is also finished as ``_predict_numba._finish`` does (its holes
+        looked up in ``source = (d, var, valid)``, the source maps, over ``finish[0]`` steps; values outside
+        ``[finish[3], finish[4])`` not valid), while it is in cache: ``landed`` then holds the finished validity,
+        ``hole`` the splat's own holes.
 
         A row at a time, each stage split into loops without gathers (compiled to SIMD code) and loops that only
         gather: with the gathers inside, the loop stays scalar and several times slower. The compute loops touch
@@ -203,6 +207,10 @@ if AVAILABLE:
             W, np.float32)
         land_r, fall_r = np.empty(W, np.bool_), np.empty(W, np.bool_)
         at = np.empty(W, np.uint32)
+        close_iters, close_tol, close_surface, low, high = finish
+        if close_iters >= 0:  # the finishing step's work rows (_predict_numba._close_row)
+            scratch, flags = np.empty((11, W), np.float32), np.empty((2, W), np.bool_)
+            holes, cells = np.empty(W, np.int32), np.empty(W, np.uint32)
         for y in range(y0, y1):
             yf = _F(y)
             # row-constant parts of the back-projection G (x, y, 1), added in the torch path's order
@@ -303,6 +311,14 @@ if AVAILABLE:
                 v = (var_r[x] + process_noise) if has_var else process_noise
                 v_out[x] = v if land_r[x] else hole_variance
                 c_out[x] = _F(1.0) / (_F(1.0) + v) if land_r[x] else _F(0.0)
+            if close_iters >= 0:
+                if close_iters > 0:
+                    _cracks._close_row(source[0], source[1], source[2], G, e, close_iters, close_tol, close_surface,
+                               process_noise, y, d_out, land_out, v_out, c_out, scratch, flags, holes, cells)
+                for x in range(W):
+                    keep = land_out[x] & (d_out[x] >= low) & (d_out[x] < high)
+                    land_out[x] = keep
+                    c_out[x] = c_out[x] if keep else _F(0.0)
 
     @_jit
     def _fill(image_fill, hole_variance, rows, disparity, variance, confidence):
@@ -332,7 +348,8 @@ def _workspace(H: int, W: int, has_var: bool) -> tuple[np.ndarray, ...]:
 
 def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | None, A: torch.Tensor,
                a: torch.Tensor, G: torch.Tensor, e: torch.Tensor, surface_tolerance: float, refine_iterations: int,
-               fill_holes: bool, process_noise: float, hole_variance: float, threads: int | None = None
+               fill_holes: bool, process_noise: float, hole_variance: float, threads: int | None = None,
+               finish: tuple[int, float, float, float, float] | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """Hard splat with ``refine_iterations >= 1`` refinement steps, hole fill and outputs (float32 CPU, no gradient).
 
@@ -345,12 +362,18 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
         A, a, G, e: the pixel-homogeneous motion of ``_splat._pixel_motion`` (float32).
         surface_tolerance, refine_iterations, fill_holes, process_noise, hole_variance: as ``predict_disparity``.
         threads: worker threads (None: ``torch.get_num_threads()``).
+        finish: ``(iterations, tolerance, surface_tolerance, low, high)``: also the refiner's step after the splat
+            (:func:`egorefine.refine._predict_numba.finish_prediction`, its look-ups in the source maps ``d``,
+            ``var``, ``valid``, which must be given), row by row while each is in cache; None: the splat alone.
 
     Returns:
         ``(disparity, variance, confidence, landed, hole)`` each ``(B, H, W)``, as ``predict_disparity``'s fields
-        (holes filled or 0, ``hole_variance`` and confidence 0 on holes; ``hole = ~landed``); None if ``d`` holds
-        NaN or Inf or ``var`` a value that is not finite and >= 0.
+        (holes filled or 0, ``hole_variance`` and confidence 0 on holes; ``hole = ~landed``; with ``finish`` the
+        fields after that step, ``hole`` the splat's own holes); None if ``d`` holds NaN or Inf or ``var`` a value
+        that is not finite and >= 0.
     """
+    if finish is not None and (var is None or valid is None):
+        raise ValueError("hard_splat: finish needs the source variance and validity")
     B, H, W = d.shape
     threads = max(1, threads or torch.get_num_threads())
     dn = d.numpy()
@@ -365,6 +388,9 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     hole = np.empty((B, H, W), np.bool_)
     bands = frame_bands(H, threads)
     noise, hole_var = _F(process_noise), _F(hole_variance)
+    # (iterations -1: no finishing step)
+    close = (-1, _F(0.0), _F(0.0), _F(0.0), _F(0.0)) if finish is None else (
+        int(finish[0]), _F(finish[1]), _F(finish[2]), _F(finish[3]), _F(finish[4]))
 
     def item(i: int, run) -> bool:
         key_src, key_new, var_p, zbuf, at = _workspace(H, W, var is not None)
@@ -375,12 +401,17 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
         _scatter(at, key_new, zbuf, var_p, var is not None)
         later = np.empty(H, np.bool_)
         outs = (landed[i], hole[i], disparity[i], variance[i], confidence[i])
+        source = (dn[i], varn[i], okn[i])
         run(lambda band: _targets(zbuf, key_src, key_new, var_p, var is not None, An[i], an[i], Gn[i], en[i], tol,
-                                  refine_iterations, band[0], band[1], fill_holes, noise, hole_var, later, *outs),
-            bands)
+                                  refine_iterations, band[0], band[1], fill_holes, noise, hole_var, later, *outs,
+                                  close, source), bands)
         if later.any():  # rows without a landed pixel: the smallest landed value of the image (0 if none)
-            values = disparity[i][landed[i]]
+            values = disparity[i][~hole[i]]  # (the splat's landed pixels: finishing changes only holes' values)
             _fill(_F(values.min()) if values.size else _F(0.0), hole_var, later, *outs[2:])
+            if finish is not None:  # those rows finished now, after their fill
+                for y in np.flatnonzero(later):
+                    _cracks._finish(*source, Gn[i], en[i], close[0], *close[1:3], noise, *close[3:], y, y + 1,
+                                 disparity[i], variance[i], landed[i], confidence[i])
         return True
 
     workers = Workers(threads)
@@ -388,3 +419,8 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
         return None
     as_t = torch.from_numpy
     return as_t(disparity), as_t(variance), as_t(confidence), as_t(landed), as_t(hole)
+
+
+# The finishing step's kernels (crack closing). Imported last: _predict_numba takes its constants from this module,
+# and the kernels above look the module's functions up when they are first compiled.
+from . import _predict_numba as _cracks  # noqa: E402

@@ -36,7 +36,7 @@ import torch
 from ..core import check_setting, check_shape, use_compiled
 from . import _predict_numba
 from ._splat import _pixel_motion
-from .predict import Prediction
+from .predict import _SETTINGS, Prediction, _predict_disparity
 
 __all__ = ["close_cracks"]  # (and the refiner's private finish_prediction)
 
@@ -203,3 +203,43 @@ def finish_prediction(
                                   process_noise=process_noise)
     in_range = (prediction.disparity >= low) & (prediction.disparity < high)
     return prediction._replace(valid=prediction.valid & in_range, confidence=prediction.confidence * in_range)
+
+
+def predict_finished(
+    key_disparity: torch.Tensor,
+    key_motion: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+    key_variance: torch.Tensor,
+    key_valid: torch.Tensor,
+    mode: str,
+    process_noise: float,
+    fill_cracks: bool,
+    valid_range: tuple[float, float],
+) -> Prediction:
+    """The refiner's prediction: :func:`~egorefine.refine.predict_disparity` of the keyframe's map moved by
+    ``key_motion`` (its defaults otherwise), then :func:`finish_prediction` with the same keyframe and motion.
+
+    Where the compiled splat runs (float32 CPU, no gradient) it does both in one pass, finishing each row while it
+    is in cache (the same formulas, so the same maps); otherwise the two run one after the other.
+
+    Shape:
+        - key_disparity, key_variance, key_valid: ``(B, 1, H, W)``; key_motion ``(B, 4, 4)``; K ``(B, 3, 3)``;
+          baseline ``(B,)``. Returns a :class:`~egorefine.refine.Prediction` of ``(B, 1, H, W)`` maps.
+
+    Example:
+        >>> from egorefine.geometry import make_intrinsics
+        >>> d = torch.full((1, 1, 6, 8), 4.0)
+        >>> pred = predict_finished(d, torch.eye(4)[None], make_intrinsics(10.0, 4.0, 3.0), torch.tensor([1.0]),
+        ...                         torch.zeros_like(d), torch.ones_like(d, dtype=torch.bool), "hard", 0.01, True,
+        ...                         (0.0, 64.0))
+        >>> bool(pred.valid.all()), bool((pred.disparity == 4.0).all())
+        (True, True)
+    """
+    finish = (_ITERATIONS if fill_cracks else 0, _TOLERANCE, _SURFACE_TOLERANCE, *valid_range)
+    pred, finished = _predict_disparity(key_disparity, key_motion, K, baseline, key_variance, key_valid, mode=mode,
+                                        process_noise=process_noise, **_SETTINGS, finish=finish)
+    if finished:
+        return pred
+    return finish_prediction(pred, key_disparity, key_variance, key_valid, key_motion, K, baseline, process_noise,
+                             fill_cracks, valid_range)

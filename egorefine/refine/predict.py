@@ -69,6 +69,7 @@ off by more than 0.5 px after 10 frames, all at depth edges.
 
 from __future__ import annotations
 
+import inspect
 from functools import partial
 from typing import NamedTuple
 
@@ -247,6 +248,34 @@ def predict_disparity(
     >>> pred.disparity.shape, bool(pred.valid.all()), bool((pred.disparity == 4.0).all())
     (torch.Size([1, 1, 6, 8]), True, True)
     """
+    return _predict_disparity(disparity, motion, K, baseline, variance, valid, mode, process_noise, hole_variance,
+                              fill_holes, temperature, refine_iterations, surface_tolerance)[0]
+
+
+# predict_disparity's settings with their defaults, for the callers of _predict_disparity that keep them
+_SETTINGS = {name: p.default for name, p in inspect.signature(predict_disparity).parameters.items()
+             if name in ("hole_variance", "fill_holes", "temperature", "refine_iterations", "surface_tolerance")}
+
+
+def _predict_disparity(
+    disparity: torch.Tensor,
+    motion: torch.Tensor,
+    K: torch.Tensor,
+    baseline: torch.Tensor,
+    variance: torch.Tensor | None,
+    valid: torch.Tensor | None,
+    mode: str,
+    process_noise: float,
+    hole_variance: float,
+    fill_holes: bool,
+    temperature: float,
+    refine_iterations: int,
+    surface_tolerance: float,
+    finish: tuple[int, float, float, float, float] | None = None,
+) -> tuple[Prediction, bool]:
+    """:func:`predict_disparity` (its checks and its paths), and whether ``finish`` (the refiner's step after the
+    splat, see :func:`egorefine.refine._splat_numba.hard_splat`) was done in the same pass: only the compiled splat
+    does it, given a variance and a validity; else the caller runs that step itself."""
     dims = check_shape(disparity, ["B", "1", "H", "W"], "disparity")
     check_float(disparity, "disparity")
     check_shape(motion, ["B", "4", "4"], "motion", dims)
@@ -292,7 +321,8 @@ def predict_disparity(
         inputs = [t for t in (disparity, motion, K, baseline, variance, valid) if t is not None]
         has = (variance is not None, valid is not None)
         splat = partial(_predict_inputs, has=has, settings=settings)
-        return Prediction(*_graphs.replay(splat, ("predict", has, settings), *inputs))
+        return Prediction(*_graphs.replay(splat, ("predict", has, settings), *inputs)), False
+    finish = finish if compiled and variance is not None and valid is not None else None
     with torch.set_grad_enabled(not fast):
         return _predict(
             disparity,
@@ -310,7 +340,8 @@ def predict_disparity(
             surface_tolerance,
             fast,
             compiled,
-        )
+            finish,
+        ), finish is not None
 
 
 def _predict_inputs(*inputs: torch.Tensor, has: tuple[bool, bool], settings: tuple) -> tuple[torch.Tensor, ...]:
@@ -339,9 +370,11 @@ def _predict(
     surface_tolerance: float,
     fast: bool,
     compiled: bool = False,
+    finish: tuple[int, float, float, float, float] | None = None,
 ) -> Prediction:
     """The body of :func:`predict_disparity` (inputs checked); ``fast``: no gradient needed, work in place;
-    ``compiled``: run the compiled splat (:func:`~egorefine.core.use_compiled` allowed it)."""
+    ``compiled``: run the compiled splat (:func:`~egorefine.core.use_compiled` allowed it), with ``finish`` if
+    given (:func:`egorefine.refine._splat_numba.hard_splat`)."""
     B, _, H, W = disparity.shape
     dtype, device = disparity.dtype, disparity.device
     motion, K, baseline = motion.to(dtype), K.to(dtype), baseline.to(dtype)
@@ -354,11 +387,12 @@ def _predict(
         out = _splat_numba.hard_splat(
             d.contiguous(), None if var is None else var.contiguous(),
             None if valid is None else valid[:, 0].contiguous(), A, a, G, e, surface_tolerance, refine_iterations,
-            fill_holes, process_noise, hole_variance,
+            fill_holes, process_noise, hole_variance, finish=finish,
         )
         if out is None:  # NaN or Inf in the disparity, or a variance not finite and >= 0
             check_finite(disparity, "disparity")
-            check_variance(variance, "variance")
+            if variance is not None:
+                check_variance(variance, "variance")
             raise ValueRangeError(f"variance: expected finite values >= 0 in {dtype}")  # (beyond its range)
         est, out_var, confidence, landed, hole = out
         return Prediction(est[:, None], out_var[:, None], hole[:, None], landed[:, None], confidence[:, None])

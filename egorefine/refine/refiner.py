@@ -49,7 +49,7 @@ from ..stereo.matching import _TEMPERATURES
 from ..stereo.scale import match_half_resolution
 from ._steps import _confidence, _expected_positions, _overrule, _owned, _take_hole_measurements
 from .correct import correct_disparity, edge_variance
-from .cracks import finish_prediction
+from .cracks import predict_finished
 from .health import (
     Status,
     count_per_item,
@@ -69,7 +69,6 @@ from .options import (
     TrackingOptions,
     resolve_groups,
 )
-from .predict import predict_disparity
 from .state import RefinerOutput, RefinerState
 
 __all__ = ["RefinerState", "RefinerOutput", "EgoMotionRefiner"]
@@ -589,24 +588,14 @@ class EgoMotionRefiner(nn.Module):
         process_noise = self.process_noise
         if isinstance(process_noise, torch.Tensor):
             process_noise = process_noise.to(grey.dtype)
-        pred = predict_disparity(
-            state.key_disparity,
-            key_motion,
-            K,
-            baseline,
-            variance=state.key_variance,
-            valid=state.key_valid,
-            mode=self.prediction.splat,
-            process_noise=process_noise * steps,
-        )
-        # Holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it (fill_cracks).
-        # A predicted value outside the stereo search range cannot be verified by the next stereo run. On the test
-        # scenes such values are mostly a stereo outlier magnified by the approach (a mismatched patch at 54 px in a
-        # corridor whose truth there is 11 px grows past 100 px within four frames forward, and its large footprint
-        # wins the z-buffer): they are not valid, and carry no confidence.
-        pred = finish_prediction(pred, state.key_disparity, state.key_variance, state.key_valid, key_motion, K,
-                                 baseline, process_noise * steps, self.prediction.fill_cracks,
-                                 (self.stereo.min_disparity, self.max_disparity))
+        # Then holes the keyframe saw (magnified surfaces outgrow the splat's tiling) are looked up in it
+        # (fill_cracks). A predicted value outside the stereo search range cannot be verified by the next stereo
+        # run. On the test scenes such values are mostly a stereo outlier magnified by the approach (a mismatched
+        # patch at 54 px in a corridor whose truth there is 11 px grows past 100 px within four frames forward, and
+        # its large footprint wins the z-buffer): they are not valid, and carry no confidence.
+        pred = predict_finished(state.key_disparity, key_motion, K, baseline, state.key_variance, state.key_valid,
+                                self.prediction.splat, process_noise * steps, self.prediction.fill_cracks,
+                                (self.stereo.min_disparity, self.max_disparity))
         coverage = conf = None
         if self.schedule.adaptive:
             coverage = pred.valid.flatten(1).float().mean(1)

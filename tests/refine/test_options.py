@@ -184,7 +184,7 @@ def test_the_fill_searches_up_to_the_predictions_largest_value_plus_its_margin(m
     seq = render_sequence(num_frames=4, height=60, width=160, seed=4)
     K, b = seq.K[None], torch.tensor([seq.baseline])
     assert float(seq.disparity.amax()) + 8 + 1 < 64  # the cut range lies below max_disparity on this scene
-    fill, predict = refiner_module._fill_matcher, refiner_module.finish_prediction
+    fill, predict = refiner_module._fill_matcher, refiner_module.predict_finished
     seen, largest = [], []
 
     def spy_fill(left, right, max_disparity, *args):
@@ -197,7 +197,7 @@ def test_the_fill_searches_up_to_the_predictions_largest_value_plus_its_margin(m
         return pred
 
     monkeypatch.setattr(refiner_module, "_fill_matcher", spy_fill)
-    monkeypatch.setattr(refiner_module, "finish_prediction", spy_predict)
+    monkeypatch.setattr(refiner_module, "predict_finished", spy_predict)
     for options, expect_cut in ((StereoOptions(), True), (StereoOptions(fill_margin=None), False),
                                 (StereoOptions(fill_band=12), False)):
         seen.clear(), largest.clear()

@@ -175,6 +175,30 @@ def test_compiled_finish_equals_torch_path(scene, monkeypatch, fill):
 
 
 @needs_numba
+@pytest.mark.parametrize("fill", [True, False])
+@pytest.mark.parametrize("empty_rows", [False, True])
+def test_fused_finish_equals_the_two_steps(scene, fill, empty_rows):
+    # predict_finished runs the splat and the step after it in one pass on the compiled path: the same kernels'
+    # formulas on the same values as the two separate calls, so the same bits (one machine, one build). With empty
+    # rows (no landed pixel: filled from the whole image after the pass, then finished) too.
+    from egorefine.refine.cracks import predict_finished
+
+    d, motion, K, b, var, valid = scene
+    if empty_rows:  # source rows not splatted (negative: no point) but valid for the look-ups: their target rows
+        d = d.clone()  # stay empty in the splat, and the step after it finds values there
+        d[..., 40:52, :] = -d[..., 40:52, :]
+    pred = predict_disparity(d, motion, K, b, variance=var, valid=valid, process_noise=0.02)
+    low, high = pred.disparity[pred.valid].quantile(torch.tensor([0.1, 0.9])).tolist()
+    if empty_rows:
+        assert (~pred.valid).all(-1).any()  # some rows have no landed pixel
+    two = finish_prediction(pred, d, var, valid, motion, K, b, 0.02, fill, (low, high))
+    one = predict_finished(d, motion, K, b, var, valid, "hard", 0.02, fill, (low, high))
+    for name in ("disparity", "variance", "valid", "confidence"):
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+    assert torch.equal(one.hole, pred.hole)  # the splat's own holes
+
+
+@needs_numba
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 def test_compiled_splat_rejects_non_finite_disparity(scene, bad):
     # The compiled path tests finiteness inside its kernels (no torch pass over the map): the same typed error.
