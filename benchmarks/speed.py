@@ -201,7 +201,7 @@ def report(cases: list[dict], threads: int, passes: int) -> str:
                           for kind in ("prediction", "verification")]
     stage_text = ("Per stage, median ms over the frames of each kind (exclusive time: a stage's own, not that of the "
                   f"stages it calls; {BOOKKEEPING} = the frame's time no stage holds; medians need not add up to "
-                  "the frame's median).")
+                  "the frame's median; the compiled splat closes the cracks as it goes: their time is the splat's).")
     return "\n\n".join([head, table, stage_text, markdown_table(header, stage_rows)])
 
 
