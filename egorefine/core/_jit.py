@@ -12,6 +12,8 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
+import torch
+
 __all__ = ["AVAILABLE", "MIN_SPLIT_PIXELS", "Workers", "bands", "frame_bands", "jit", "numba",
            "SHARES_PER_THREAD", "split"]
 
@@ -66,6 +68,12 @@ def _noalias_compiler() -> type:
 
         _NOALIAS_COMPILER.append(NoAliasCompiler)
     return _NOALIAS_COMPILER[0]
+
+
+def thread_count(threads: int | None = None) -> int:
+    """The worker threads a compiled kernel uses: ``threads`` when given, else ``torch.get_num_threads()``; at
+    least 1. The one rule every kernel's wrapper follows."""
+    return max(1, threads or torch.get_num_threads())
 
 
 def bands(n: int, parts: int) -> list[tuple[int, int]]:

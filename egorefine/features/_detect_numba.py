@@ -36,7 +36,7 @@ import threading
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from ._peaks import _subpixel_offsets
@@ -442,7 +442,7 @@ def detect_compiled(
     has checked the image's values).
     """
     b, _, h, w = grey.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     img = grey.detach()[:, 0].contiguous().numpy()
     resp, idx, val = _SCRATCH.get(b, h, w)
     k = _gauss7()

@@ -35,7 +35,7 @@ import math
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, SHARES_PER_THREAD, Workers
+from ..core._jit import AVAILABLE, SHARES_PER_THREAD, Workers, thread_count
 from ..core._jit import jit as _jit
 
 # the torch path pads feature subsets to multiples of this many slots; the loops repeat its sizes
@@ -507,7 +507,7 @@ def track_compiled(
     b, n = weights.shape
     live = weights.numpy() > 0
     eps32 = np.float32(1e-6)
-    run = _Runner(max(1, threads or torch.get_num_threads()))
+    run = _Runner(thread_count(threads))
     # The torch path matches the live features in (B, M) subsets whose size decides, per level, whether the
     # window sums come from box maps (_matching._match_level): the sizes are repeated here for that choice.
     slots = n if count > n - _SLOT_STEP else _padded(count, n)

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from ..core import eps_like
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import jit as _jit
 from ..geometry.se3 import _SMALL_ANGLE
 from .robust import HUBER_K
@@ -654,7 +654,7 @@ def refine_compiled(prev_grey: torch.Tensor, grey: torch.Tensor, disparity: torc
     from .direct import _GAIN_RANGE, DIRECT_STATUS
 
     b, _, h, w = prev_grey.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     images = (prev_grey.detach()[:, 0].contiguous().numpy(), grey.detach()[:, 0].contiguous().numpy())
     disp = disparity.detach()[:, 0].contiguous().numpy()
     has_valid = valid is not None

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import jit as _jit
 from ..core._jit import split as _split
 
@@ -159,7 +159,7 @@ def kalman_fuse(e: torch.Tensor, s: torch.Tensor, m_ok: torch.Tensor, p_ok: torc
     outs = (np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.bool_))
     has_max = max_unverified_variance is not None
     prm = np.array([kalman_gate, reset_after, min_variance, max_unverified_variance if has_max else 0.0], np.float32)
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     Workers(threads).map(lambda c: _kalman(*flat, c[0], c[1], prm, has_max, *outs), _split(n, threads))
     d, var, cnt, valid = (torch.from_numpy(o).view(shape) for o in outs)
     return d, var, valid, cnt
@@ -180,7 +180,7 @@ def take_measurements(disparity: torch.Tensor, variance: torch.Tensor, valid: to
             np.empty(n, np.float32))
     has_margin = background_margin is not None
     prm = np.array([max_variance, background_margin if has_margin else 0.0], np.float32)
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     Workers(threads).map(lambda c: _take(*flat, c[0], c[1], prm, has_margin, *outs), _split(n, threads))
     return tuple(torch.from_numpy(o).view(shape) for o in outs)
 
@@ -190,7 +190,7 @@ def confidence(valid: torch.Tensor, variance: torch.Tensor, threads: int | None 
     shape = variance.shape
     v, var = valid.detach().contiguous().reshape(-1).numpy(), variance.detach().contiguous().reshape(-1).numpy()
     out = np.empty(var.shape[0], np.float32)
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     Workers(threads).map(lambda c: _confidence(v, var, c[0], c[1], out), _split(out.shape[0], threads))
     return torch.from_numpy(out).view(shape)
 
@@ -209,7 +209,7 @@ def overrule(maps: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
              for t in (*maps, *predicted, *measured, regions)]
     corrected, pm, mm, reg = items[:4], items[4:7], items[7:10], items[10]
     flags = [_bytes(t.detach().contiguous().numpy()) for t in (keep, restart)]
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     work = [(k, c) for k in range(4) for c in _split(reg.shape[1], threads)]
     if inplace:
         Workers(threads).map(lambda job: _overrule_inplace(corrected[job[0]], pm[job[0]] if job[0] < 3 else None,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import jit as _jit
 from ..core._jit import split as _split
 
@@ -65,7 +65,7 @@ def disagreeing_regions(predicted: torch.Tensor, predicted_valid: torch.Tensor, 
                                                                     measured_valid))
     out = torch.empty(predicted.shape, dtype=torch.bool)
     o = out[:, 0].numpy()
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     rows = -(-H // tile)
     jobs = [(b, band) for b in range(B) for band in _split(rows, threads, H * W)]
     settings = (np.float32(px), np.float32(min_support), np.float32(share))

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers, frame_bands
+from ..core._jit import AVAILABLE, Workers, frame_bands, thread_count
 from ..core._jit import jit as _jit
 from ._splat_numba import _BIG, _F, _MIN
 
@@ -276,7 +276,7 @@ def close_cracks(disparity: torch.Tensor, variance: torch.Tensor, valid: torch.T
         threads: worker threads (None: ``torch.get_num_threads()``).
     """
     B, H, W = disparity.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     # (the copies are made inside the kernel: a torch copy of a full map would wake torch's OpenMP threads)
     maps_in = [t.numpy() for t in (disparity, variance, valid, confidence)]
     outs = [np.empty((B, H, W), np.float32), np.empty((B, H, W), np.float32), np.empty((B, H, W), np.bool_),
@@ -305,7 +305,7 @@ def finish_prediction(disparity: torch.Tensor, variance: torch.Tensor, valid: to
     bool): :func:`close_cracks`' look-ups for the holes (``iterations`` 0: none), then values outside
     ``[low, high)`` not valid, with confidence 0. One pass, no copy of the maps."""
     B, H, W = disparity.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     maps = [t.numpy() for t in (disparity, variance, valid, confidence)]
     kd, kv, kok = (t.contiguous().numpy() for t in (key_disparity, key_variance, key_valid))
     Gn, en = G.numpy(), e.numpy()
@@ -323,7 +323,7 @@ def edge_variance(disparity: torch.Tensor, valid: torch.Tensor, radius: int, bas
     """:func:`egorefine.refine.correct.edge_variance` of float32 CPU maps ``(B, H, W)`` (``valid`` bool, ``base``
     float32 or None): one compiled pass instead of ~12 full-map torch ops (memory-bound)."""
     B, H, W = disparity.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     d, ok = disparity.numpy(), valid.numpy()
     has_base = base is not None
     bn = base.numpy() if has_base else d

@@ -38,7 +38,7 @@ import threading
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers, frame_bands
+from ..core._jit import AVAILABLE, Workers, frame_bands, thread_count
 from ..core._jit import jit as _jit
 
 __all__ = ["AVAILABLE", "hard_splat"]
@@ -375,7 +375,7 @@ def hard_splat(d: torch.Tensor, var: torch.Tensor | None, valid: torch.Tensor | 
     if finish is not None and (var is None or valid is None):
         raise ValueError("hard_splat: finish needs the source variance and validity")
     B, H, W = d.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     dn = d.numpy()
     okn = valid.numpy() if valid is not None else np.ones((B, 1, W), np.bool_)
     varn = var.numpy() if var is not None else np.zeros((B, 1, 1), np.float32)

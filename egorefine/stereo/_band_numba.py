@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 
@@ -303,7 +303,7 @@ def match_band(grey_l: torch.Tensor, grey_r: torch.Tensor, lo: torch.Tensor, wid
         pixels (as ``census_sgm_select``).
     """
     b, _, h, w = grey_l.shape
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     left, right = grey_l.detach().numpy(), grey_r.detach().numpy()
     lo_np = np.ascontiguousarray(lo.numpy()[:, 0], dtype=np.int32)
     disparity = np.empty((b, h, w), np.float32)

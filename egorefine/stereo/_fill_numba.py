@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import jit as _jit
 from ..core._jit import split as _split
 
@@ -44,7 +44,7 @@ def fill_invalid(primary: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     d2, ok2, v2 = (t.detach().contiguous().reshape(-1).numpy() for t in secondary)
     n = d1.shape[0]
     d_out, v_out, ok_out = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.uint8)
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     keep, other = ok1.view(np.uint8), ok2.view(np.uint8)
     Workers(threads).map(lambda c: _fill(keep, d1, v1, d2, v2, other, c[0], c[1], d_out, v_out, ok_out),
                          _split(n, threads))

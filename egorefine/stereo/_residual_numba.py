@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE
@@ -352,7 +352,7 @@ def match_residual(left: torch.Tensor, right: torch.Tensor, prior: torch.Tensor,
     variance)`` as the torch path returns them for the prefiltered images, for either ``window``."""
     b, _, h, w = left.shape
     kernel = _fronto_band if window == "fronto" else _band
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     ln, rn = left[:, 0].contiguous().numpy(), right[:, 0].contiguous().numpy()
     cap = np.float32(prefilter_cap)
     prn, okn = prior[:, 0].contiguous().numpy(), ok[:, 0].contiguous().numpy()

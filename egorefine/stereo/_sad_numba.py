@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from .fast import _INVALID, _QUANTISATION_VARIANCE, INVALID_VARIANCE
@@ -317,7 +317,7 @@ def match_sad_compiled(left: torch.Tensor, right: torch.Tensor, max_d: int, min_
     """
     b, _, h, w = left.shape
     r, num = block // 2, max_d - min_d
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     guard, uniq, t_need, c_level, flt = _settings(max_d, min_d, block, cap, scale, opts)
     grey_l, grey_r = (g.detach()[:, 0].contiguous().numpy() for g in (left, right))
     disparity = np.empty((b, h, w), np.float32)
@@ -347,7 +347,7 @@ def _quantised(grey: torch.Tensor, cap: float, scale: int, r: int, left: int, th
     g = grey.detach()[:, 0].contiguous().numpy()
     out = np.empty((b, h + 2 * r, left + w + r), np.int16)
     args = (np.float32(cap), np.float32(255.0 * scale), round(255.0 * scale * cap), r, left)
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     _run(threads, lambda job: _quantise_rows(g[job[0]], *args, *job[1], out[job[0], job[1][0]:job[1][1]]),
          [(i, rows) for i in range(b) for rows in _bands(h + 2 * r, threads)])
     return out
@@ -391,7 +391,7 @@ def match_sad_windows(left: torch.Tensor, right: torch.Tensor, boxes: list[list[
     """
     b, _, h, w = left.shape
     r, num = block // 2, max_d - min_d
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     lq, rq, (guard, uniq, t_need, c_level, flt) = _setup(left, right, max_d, min_d, block, cap, scale, opts)
     disparity = np.zeros((b, h, w), np.float32)
     valid = np.zeros((b, h, w), np.bool_)

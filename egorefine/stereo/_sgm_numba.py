@@ -43,7 +43,7 @@ import threading
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 
@@ -628,7 +628,7 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     """
     b, _, h, w = grey_l.shape
     num = max_disparity - min_disparity
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     left, right = grey_l.detach().numpy(), grey_r.detach().numpy()
     disparity = np.empty((b, h, w), dtype=np.float32)
     valid = np.empty((b, h, w), dtype=np.bool_)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers
+from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import jit as _jit
 from ..core._jit import split as _split
 
@@ -128,7 +128,7 @@ def mask_untextured(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey: 
     g = grey.detach().contiguous().numpy()
     d, v, var = disparity.numpy(), valid.numpy(), variance.numpy()
     settings = (int(block_size), np.float32(cap), np.float32(threshold))
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     jobs = [(i, rows) for i in range(b) for rows in _split(h, threads, h * w)]
     Workers(threads).map(lambda job: _mask_rows(g[job[0], 0], *settings, *job[1], d[job[0], 0], v[job[0], 0],
                                                 var[job[0], 0], np.float32(invalid)), jobs)

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core import ValueRangeError, check_shape, to_grey, use_compiled
-from ..core._jit import AVAILABLE, Workers, split
+from ..core._jit import AVAILABLE, Workers, split, thread_count
 from ..core._jit import jit as _jit
 from .matching import INVALID_VARIANCE, StereoOutput, match_stereo
 
@@ -116,7 +116,7 @@ def _double(half: StereoOutput, height: int, width: int, smooth: float, low: flo
         out_var = np.empty((b, 1, height, width), dtype=np.float32)
         dn, vn, varn = d.contiguous().numpy(), valid.contiguous().numpy(), var.contiguous().numpy()
         settings = (np.float32(smooth), np.float32(low), np.float32(high))
-        threads = torch.get_num_threads()
+        threads = thread_count()
         jobs = [(i, rows) for i in range(b) for rows in split(height, threads, height * width)]
         Workers(threads).map(lambda job: _double_rows(dn[job[0], 0], vn[job[0], 0], varn[job[0], 0], *settings,
                                                       out_d[job[0], 0], out_valid[job[0], 0], out_var[job[0], 0],

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from ..core import DTypeError, ValueRangeError, check_shape, use_compiled
-from ..core._jit import AVAILABLE
+from ..core._jit import AVAILABLE, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from ..core.dispatch import _is_compiling
@@ -162,7 +162,7 @@ def _remove_speckles_compiled(disp: torch.Tensor, valid: torch.Tensor, max_size:
     v = np.ascontiguousarray(valid[:, 0].numpy())
     b, h, w = d.shape
     diff = np.array(max_diff, dtype=d.dtype)[()]
-    threads = max(1, threads or torch.get_num_threads())
+    threads = thread_count(threads)
     runs = [tuple(np.empty(h * w, np.int32) for _ in range(4)) + (np.empty(h, np.int64), np.empty(h, np.int64))
             for _ in range(b)]
     bands = _bands(h, threads)
