@@ -11,7 +11,9 @@ ones, so here it is three loops:
    padded source maps and each point's z-buffer cell; then (one thread) the scatter of the keys;
 2. (row bands on threads) per target pixel: the 3x3 z-buffer maximum, the candidate, the check in
    frame ``t-1``, the start value and the inverse-warp refinement steps;
-3. (the same rows) the background hole fill and the outputs.
+3. (the same rows) the background hole fill and the outputs; for the refiner (``finish``), each row then also
+   gets the step after the splat, its holes looked up in the source maps and the range test
+   (:mod:`egorefine.refine._predict_numba`'s kernels, called while the row is in cache).
 
 Step 2 works a row at a time and splits each stage into loops that only compute (LLVM turns them
 into SIMD code) and loops that only gather (which would keep a loop scalar), several times faster than
@@ -314,7 +316,7 @@ if AVAILABLE:
             if close_iters >= 0:
                 if close_iters > 0:
                     _cracks._close_row(source[0], source[1], source[2], G, e, close_iters, close_tol, close_surface,
-                               process_noise, y, d_out, land_out, v_out, c_out, scratch, flags, holes, cells)
+                                       process_noise, y, d_out, land_out, v_out, c_out, scratch, flags, holes, cells)
                 for x in range(W):
                     keep = land_out[x] & (d_out[x] >= low) & (d_out[x] < high)
                     land_out[x] = keep
