@@ -192,3 +192,42 @@ def test_writer_raises_a_jobs_error_and_drops_the_rest():
         writer.close()
     writer.close(drop=True)
     assert done == [] and not _writer_threads()
+
+
+class _Frames:
+    """A recording stand-in: frame ``t`` is ``(t, -t)``; reading ``bad`` raises; records which thread read what."""
+
+    def __init__(self, bad: int | None = None):
+        self.bad, self.read, self.threads = bad, [], set()
+
+    def __getitem__(self, t: int):
+        self.threads.add(threading.get_ident())
+        self.read.append(t)
+        if t == self.bad:
+            raise OSError(f"frame {t}: cannot decode")
+        return t, -t
+
+
+def test_frames_are_read_ahead_in_order_on_another_thread():
+    rec = _Frames()
+    frames = _run_module._read_ahead(rec, 5)
+    first = next(frames)
+    assert first == (0, 0)
+    got = [first, *frames]
+    assert got == [(t, -t) for t in range(5)] and rec.read == list(range(5))
+    assert threading.get_ident() not in rec.threads  # (the reads ran beside the caller)
+
+
+def test_a_read_error_is_raised_at_its_frame_and_nothing_is_read_after_close():
+    rec = _Frames(bad=2)
+    frames = _run_module._read_ahead(rec, 6)
+    assert next(frames) == (0, 0) and next(frames) == (1, -1)
+    with pytest.raises(OSError, match="frame 2: cannot decode"):
+        next(frames)
+    frames.close()
+    assert rec.read == [0, 1, 2]  # frame 3 is requested only once frame 2 is taken
+    stopped = _Frames()
+    frames = _run_module._read_ahead(stopped, 6)
+    next(frames)
+    frames.close()  # (a run that stops early: the read under way finishes, no other starts)
+    assert stopped.read == [0, 1]

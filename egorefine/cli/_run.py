@@ -10,7 +10,8 @@ import shutil
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,20 @@ def parse_outputs(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(_FRAME_DIRS)} (or none "
                                          f"alone), got {text!r}")
     return tuple(name for name in _FRAME_DIRS if name in names)
+
+
+def _read_ahead(rec, count: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """``rec[0], rec[1], ...`` up to ``count``, each read (decoded, rectified) on a thread of its own while the
+    caller refines the one before: the reading overlaps the refining. One read at a time, in order (a recording's
+    reader need not be thread-safe, only used by one thread at a time); a read's error is raised where its frame is
+    taken."""
+    with ThreadPoolExecutor(1, thread_name_prefix="egorefine-reader") as pool:
+        ahead = pool.submit(rec.__getitem__, 0)
+        for t in range(count):
+            frame = ahead.result()
+            if t + 1 < count:
+                ahead = pool.submit(rec.__getitem__, t + 1)
+            yield frame
 
 
 class _Writer:
@@ -344,10 +359,11 @@ def _run(args: argparse.Namespace, on_progress: Callable[[int, int], object] | N
     t_loop = time.perf_counter()
     if on_progress is not None:
         on_progress(0, T)
+    frames = _read_ahead(rec, T)
     try:
         with torch.no_grad():
             for t in progress(range(T), total=T, desc="egorefine run", enabled=not args.quiet):
-                left, right = rec[t]
+                left, right = next(frames)
                 left, right = left.to(device), right.to(device)
                 t0 = time.perf_counter()
                 result, state = refiner(left, right, K, baseline, state)
@@ -373,6 +389,7 @@ def _run(args: argparse.Namespace, on_progress: Callable[[int, int], object] | N
             rerun_writer.close()
             rerun.close()  # flushed, finished and renamed into place
     finally:
+        frames.close()  # (after an error: the read under way finishes, no other starts)
         writer.close(drop=True)
         if rerun is not None:
             rerun_writer.close(drop=True)
