@@ -38,7 +38,7 @@ from . import _predict_numba
 from ._splat import _pixel_motion
 from .predict import _SETTINGS, Prediction, _predict_disparity
 
-__all__ = ["close_cracks"]  # (and the refiner's private finish_prediction)
+__all__ = ["close_cracks"]  # (and the refiner's private finish_prediction and predict_finished)
 
 _MIN_DEPTH_RATIO = 1e-3
 # close_cracks' defaults (the refiner's settings)
