@@ -12,6 +12,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 import torch
 
 __all__ = ["AVAILABLE", "MIN_SPLIT_PIXELS", "Workers", "bands", "frame_bands", "jit", "numba",
@@ -74,6 +75,32 @@ def thread_count(threads: int | None = None) -> int:
     """The worker threads a compiled kernel uses: ``threads`` when given, else ``torch.get_num_threads()``; at
     least 1. The one rule every kernel's wrapper follows."""
     return max(1, threads or torch.get_num_threads())
+
+
+_scratch = threading.local()
+
+
+def scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+    """The calling thread's reusable work array ``name``: a view of a kept buffer, allocated anew only when it is
+    too small or of another type (a call with a smaller shape reuses it; fresh pages of image-sized arrays on every
+    call cost a sizeable share of a kernel call). Its contents are whatever the last user left. Names carry their
+    module's prefix (``"sgm.cost"``), so that :func:`release_scratch` can free one module's buffers."""
+    arrays = getattr(_scratch, "arrays", None)
+    if arrays is None:
+        arrays = _scratch.arrays = {}
+    size = int(np.prod(shape))
+    flat = arrays.get(name)
+    if flat is None or flat.size < size or flat.dtype != dtype:
+        arrays.pop(name, None)  # free the old one before allocating the new
+        flat = arrays[name] = np.empty(size, dtype=dtype)
+    return flat[:size].reshape(shape)
+
+
+def release_scratch(prefix: str) -> None:
+    """Free the calling thread's :func:`scratch` buffers whose names start with ``prefix``."""
+    arrays = getattr(_scratch, "arrays", {})
+    for name in [k for k in arrays if k.startswith(prefix)]:
+        del arrays[name]
 
 
 def bands(n: int, parts: int) -> list[tuple[int, int]]:

@@ -31,12 +31,11 @@ the torch path, which stays the reference for GPU tensors, autograd, float64 and
 from __future__ import annotations
 
 import math
-import threading
 
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers, thread_count
+from ..core._jit import AVAILABLE, Workers, scratch, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 from ._peaks import _subpixel_offsets
@@ -391,23 +390,6 @@ if AVAILABLE:
             out[i] = near >= md2
 
 
-class _Scratch(threading.local):
-    """Per-thread buffers reused across calls of one shape (fresh pages cost a noticeable share of a call)."""
-
-    def __init__(self) -> None:
-        self.key = None
-        self.resp = self.idx = self.val = None
-
-    def get(self, b: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self.key != (b, h, w):
-            self.key = (b, h, w)
-            self.resp = np.empty((b, h, w), np.float32)
-            self.idx = np.empty(b * h * w, np.int64)
-            self.val = np.empty(b * h * w, np.float32)
-        return self.resp, self.idx, self.val
-
-
-_SCRATCH = _Scratch()
 _KERNEL: list[np.ndarray] = []
 
 
@@ -444,7 +426,9 @@ def detect_compiled(
     b, _, h, w = grey.shape
     threads = thread_count(threads)
     img = grey.detach()[:, 0].contiguous().numpy()
-    resp, idx, val = _SCRATCH.get(b, h, w)
+    pixels = b * h * w  # (per-thread buffers, kept across calls)
+    resp, idx, val = (scratch("detect.response", (b, h, w), np.float32),
+                      scratch("detect.index", (pixels,), np.int64), scratch("detect.value", (pixels,), np.float32))
     k = _gauss7()
     rows = _bands(h, max(1, min(threads, h // _MIN_BAND_ROWS)))
     _run(_response_rows, [(img[i], y0, y1, k, resp[i]) for i in range(b) for y0, y1 in rows], threads)

@@ -39,13 +39,12 @@ autograd.
 from __future__ import annotations
 
 import math
-import threading
 
 import numpy as np
 import torch
 
 from ..core import eps_like
-from ..core._jit import AVAILABLE, Workers, thread_count
+from ..core._jit import AVAILABLE, Workers, scratch, thread_count
 from ..core._jit import jit as _jit
 from ..geometry.se3 import _SMALL_ANGLE
 from .robust import HUBER_K
@@ -615,24 +614,6 @@ def _blur_taps(size: int, sigma: float) -> np.ndarray:
     return _KERNELS[key]
 
 
-class _Scratch(threading.local):
-    """Work arrays of the calling thread, kept across calls of one shape (fresh pages of a few image-sized arrays
-    cost a noticeable share of a call). Only the thread that called :func:`refine_compiled` hands them out, for the
-    duration of its call (the worker threads write into them, each into its own item's rows)."""
-
-    def __init__(self) -> None:
-        self.arrays: dict[str, np.ndarray] = {}
-
-    def get(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
-        a = self.arrays.get(name)
-        if a is None or a.shape != shape or a.dtype != dtype:
-            a = self.arrays[name] = np.empty(shape, dtype)
-        return a
-
-
-_SCRATCH = _Scratch()
-
-
 def refine_compiled(prev_grey: torch.Tensor, grey: torch.Tensor, disparity: torch.Tensor, valid: torch.Tensor | None,
                     variance: torch.Tensor | None, K: torch.Tensor, baseline: torch.Tensor, motion: torch.Tensor,
                     levels: int, iterations: int, cell: int, per_cell: int, sigma: float, min_gradient: float,
@@ -672,7 +653,9 @@ def refine_compiled(prev_grey: torch.Tensor, grey: torch.Tensor, disparity: torc
     shapes = np.array([(offsets[i], y, x) for i, (y, x) in enumerate(sizes)], np.int64)
     total = int(offsets[-1])
     n = (h // cell) * (w // cell) * min(per_cell, cell * cell)
-    get = _SCRATCH.get
+    def get(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        return scratch("direct." + name, shape, dtype)
+
     pyrs, tex = get("pyrs", (b, 2, total), np.float32), get("tex", (b, 3 * total), np.float32)
     xy, usable = get("xy", (b, n, 2), np.float32), get("usable", (b, n), np.bool_)
     blurred, tmp = get("blurred", (b, 2, h, w), np.float32), get("tmp", (b, 2, h, w), np.float32)

@@ -38,12 +38,10 @@ fresh pages for them on every call costs a sizeable share of the call (docs/deci
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import torch
 
-from ..core._jit import AVAILABLE, Workers, thread_count
+from ..core._jit import AVAILABLE, Workers, release_scratch, scratch, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
 
@@ -565,23 +563,6 @@ def _path_arithmetic(cost_max: int, p1: np.float32, p2: np.float32, paths: int) 
     return np.float32, np.float32(1.0e6), np.float32(0.0), np.float32(0.0)
 
 
-_workspace = threading.local()
-
-
-def _volume(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
-    """The calling thread's reusable work volume ``name``: a view of a kept buffer, allocated anew only when it is
-    too small or of another type (a call with fewer candidates, e.g. a range cut by a prediction, reuses it)."""
-    arrays = getattr(_workspace, "arrays", None)
-    if arrays is None:
-        arrays = _workspace.arrays = {}
-    size = int(np.prod(shape))
-    flat = arrays.get(name)
-    if flat is None or flat.size < size or flat.dtype != dtype:
-        arrays.pop(name, None)  # free the old one before allocating the new
-        flat = arrays[name] = np.empty(size, dtype=dtype)
-    return flat[:size].reshape(shape)
-
-
 def release_workspace() -> None:
     """Free the work volumes that the compiled census + SGM path keeps for the calling thread.
 
@@ -598,7 +579,7 @@ def release_workspace() -> None:
         >>> out.disparity.shape
         torch.Size([1, 1, 24, 32])
     """
-    _workspace.arrays = {}
+    release_scratch("sgm.")
 
 
 def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity: int, min_disparity: int,
@@ -663,8 +644,8 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
         census = np.empty((2, planes, h, w), dtype=np.uint8)
         run(lambda k: _census_of((left, right)[k][i, 0], census_window, census[k]), (0, 1))
-        cost = _volume("cost", (h, w, num), cost_dtype)
-        acc = _volume("sums", (h, w, num), path_dtype)
+        cost = scratch("sgm.cost", (h, w, num), cost_dtype)  # (a call with fewer candidates reuses them)
+        acc = scratch("sgm.sums", (h, w, num), path_dtype)
         # a volume returned to the caller stays its own (each batch item's is kept until the end)
         vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)

@@ -85,3 +85,27 @@ def test_frame_bands_cover_the_rows_once_with_a_few_bands_per_thread():
         assert all(start < stop for start, stop in bands)
         assert len(bands) <= (threads * SHARES_PER_THREAD if threads > 1 else 1)
     assert len(frame_bands(480, 2)) == 2 * SHARES_PER_THREAD
+
+
+def test_scratch_reuses_a_thread_buffer_and_releases_by_prefix():
+    import threading
+
+    import numpy as np
+
+    _jit.release_scratch("test.")
+    a = _jit.scratch("test.a", (4, 5), np.float32)
+    a[:] = 7
+    smaller = _jit.scratch("test.a", (3, 2), np.float32)
+    assert smaller.shape == (3, 2) and np.shares_memory(a, smaller)  # the kept buffer, viewed
+    assert not np.shares_memory(a, _jit.scratch("test.b", (4, 5), np.float32))  # another name, its own
+    assert not np.shares_memory(a, _jit.scratch("test.a", (5, 5), np.float32))  # too small: allocated anew
+    assert _jit.scratch("test.a", (2,), np.int16).dtype == np.int16  # another type: anew
+    other = []
+    worker = threading.Thread(target=lambda: other.append(_jit.scratch("test.a", (2,), np.int16)))
+    worker.start(), worker.join()
+    assert not np.shares_memory(other[0], _jit.scratch("test.a", (2,), np.int16))  # per thread
+    kept = _jit.scratch("keep.x", (3,), np.float32)
+    _jit.release_scratch("test.")
+    assert not np.shares_memory(_jit.scratch("test.b", (4, 5), np.float32), a)
+    assert np.shares_memory(kept, _jit.scratch("keep.x", (3,), np.float32))  # another prefix stays
+    _jit.release_scratch("keep.")
