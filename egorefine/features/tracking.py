@@ -75,6 +75,7 @@ from ..core import (
     check_shape,
     use_compiled,
 )
+from ..core.check import _host_array
 from . import _track_numba
 from ._matching import (
     _SLOT_STEP,
@@ -138,11 +139,9 @@ def _check_values(
     finite exactly when every entry is.
     """
     names = ["prev", "next", "keypoints", "weights", "predicted"]
-    tensors = [t for t in (prev, next, keypoints, weights, predicted) if t is not None]
-    if all(t.is_cpu and t.dtype in (torch.float32, torch.float64) for t in tensors):
+    arrays = [None if t is None else _host_array(t) for t in (prev, next, keypoints, weights, predicted)]
+    if all(a is not None for a in arrays[:4]) and (predicted is None or arrays[4] is not None):
         # CPU: numpy's sums and maxima on the tensors' memory, a fraction of the torch ops' launch cost
-        arrays = [t.detach().numpy() for t in (prev, next, keypoints, weights)]
-        arrays.append(None if predicted is None else predicted.detach().numpy())
         for name, a in zip(names, arrays, strict=True):
             if a is not None and a.size and not np.isfinite(a.sum() if name in ("prev", "next") else np.abs(a).max()):
                 raise ValueRangeError(f"{name}: contains NaN or Inf")
