@@ -33,10 +33,16 @@ print(kept, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
 
+def _clean_env(extra: dict | None) -> dict:
+    """This process's environment without settings of glibc's allocator (a machine's own tuning would make the
+    untouched child reuse its maps too), plus ``extra``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    return {**env, **(extra or {})}
+
+
 def _child(tune: bool, env: dict | None = None) -> tuple[str, int]:
     out = subprocess.run([sys.executable, "-c", _CHILD, "1" if tune else "0", memory.__file__], capture_output=True,
-                         text=True,
-                         check=True, env={**os.environ, **(env or {})}).stdout.split()
+                         text=True, check=True, env=_clean_env(env)).stdout.split()
     return out[0], int(out[1])
 
 
