@@ -396,7 +396,7 @@ def _sgm_penalties(cost: str, census_window: int, sgm_p1: float | None, sgm_p2: 
 
 
 def _mask_untextured_compiled(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey_l: torch.Tensor,
-                           block_size: int, prefilter_cap: float, texture_threshold: float) -> StereoOutput:
+                              block_size: int, prefilter_cap: float, texture_threshold: float) -> StereoOutput:
     """A compiled matcher's fresh CPU ``(disparity, valid, variance)`` with the texture check applied and the
     maps cleared where not valid, in place in one compiled pass (:mod:`egorefine.stereo._texture_numba`: the
     float path's decisions, no torch pass over the full maps)."""
