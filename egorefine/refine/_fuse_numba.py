@@ -87,6 +87,12 @@ if AVAILABLE:
             c = _F(1.0) / (_F(1.0) + variance[i])
             out[i] = c if valid[i] else _F(0.0)
 
+    @_jit(inline="always")
+    def _rule(ci, pi, mi, region, whole, kept):
+        """The recovery rules of one pixel: ``mi`` (the measurement) where the item restarts (``whole``) or in a
+        region of an item not kept, ``pi`` (the prediction) where the item is kept, else ``ci``."""
+        return mi if (whole | (region & (not kept))) else (pi if kept else ci)
+
     @_jit
     def _overrule(corrected, predicted, measured, regions, keep, restart, start, stop, out):
         """One map of the recovery rules, items ``(B, N)`` and flat pixels ``[start, stop)``: an item in
@@ -100,12 +106,11 @@ if AVAILABLE:
                 zero = c.dtype.type(0)  # (0 of the count's dtype)
                 for i in range(c.shape[0]):
                     ci = c[i]  # (loaded whatever is chosen: a load under a condition keeps the loop scalar)
-                    o[i] = zero if (whole | kept | (r[i] != 0)) else ci
+                    o[i] = _rule(ci, zero, zero, r[i] != 0, whole, kept)
             else:
                 p, m = predicted[b, start:stop], measured[b, start:stop]
                 for i in range(c.shape[0]):
-                    ci, pi, mi = c[i], p[i], m[i]
-                    o[i] = mi if (whole | ((r[i] != 0) & (not kept))) else (pi if kept else ci)
+                    o[i] = _rule(c[i], p[i], m[i], r[i] != 0, whole, kept)
 
     @_jit
     def _overrule_inplace(corrected, predicted, measured, regions, keep, restart, start, stop):
@@ -124,12 +129,10 @@ if AVAILABLE:
                 cb, rb, pb, mb = c[s0:s0 + n], r[s0:s0 + n], p[s0:s0 + n], m[s0:s0 + n]
                 if predicted is None:  # (measured too: the outlier count, 0 where taken)
                     for i in range(n):
-                        ci = cb[i]
-                        buf[i] = zero if (whole | kept | (rb[i] != 0)) else ci
+                        buf[i] = _rule(cb[i], zero, zero, rb[i] != 0, whole, kept)
                 else:
                     for i in range(n):
-                        ci, pi, mi = cb[i], pb[i], mb[i]
-                        buf[i] = mi if (whole | ((rb[i] != 0) & (not kept))) else (pi if kept else ci)
+                        buf[i] = _rule(cb[i], pb[i], mb[i], rb[i] != 0, whole, kept)
                 for i in range(n):
                     cb[i] = buf[i]
 
