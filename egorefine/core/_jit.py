@@ -7,15 +7,18 @@ and callers take their torch path (which is also the reference for GPU tensors a
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
+import sys
+import tempfile
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
-__all__ = ["AVAILABLE", "MIN_SPLIT_PIXELS", "Workers", "bands", "frame_bands", "jit", "numba",
+__all__ = ["AVAILABLE", "MIN_SPLIT_PIXELS", "VECTOR_OPTIONS", "Workers", "bands", "frame_bands", "jit", "numba",
            "SHARES_PER_THREAD", "split"]
 
 try:
@@ -40,35 +43,93 @@ def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False, error
     not): its array pointers are then marked ``noalias`` for LLVM, which drops the run-time overlap checks it
     otherwise runs in front of every vectorised loop. Where an inner loop is short (a few dozen disparity
     candidates) and entered once per pixel, those checks cost more than the loop. A broken promise gives
-    wrong results silently, so only kernels whose callers are all in view take it."""
+    wrong results silently, so only kernels whose callers are all in view take it.
+
+    Every kernel compiles with the loop-vectoriser settings :data:`VECTOR_OPTIONS` (one 16-lane vector per loop
+    step), set for its compilation only."""
     if fn is None:
         return lambda f: jit(f, inline, fastmath, error_model, noalias)
-    options = dict(nogil=True, fastmath=fastmath, inline=inline, error_model=error_model)
-    if noalias:
-        options["pipeline_class"] = _noalias_compiler()
+    options = dict(nogil=True, fastmath=fastmath, inline=inline, error_model=error_model,
+                   pipeline_class=_compiler(noalias))
     try:
         return numba.njit(cache=True, **options)(fn)
     except RuntimeError:  # "cannot cache function ...: no locator available"
         return numba.njit(cache=False, **options)(fn)
 
 
-_NOALIAS_COMPILER = []
+# LLVM loop-vectoriser settings for every kernel compiled here, ``{option: (value, LLVM's default)}``. The loops over
+# disparity candidates (and other short rows) have a run-time trip count of a few dozen; left to its cost model,
+# LLVM unrolls each vector loop so that one pass of its vector body takes 64 int16 lanes (two 512-bit or four 256-bit
+# vectors) and runs every shorter remainder one element at a time, so that 16, 32 or 48 candidates ran without SIMD
+# at all. One 16-lane vector per step, not unrolled, covers any multiple of 16 on AVX2 and AVX-512 alike
+# (docs/decisions.md, "Vector width of the kernels").
+VECTOR_OPTIONS = {"force-vector-interleave": ("1", "0"), "force-vector-width": ("16", "0")}
 
 
-def _noalias_compiler() -> type:
-    """numba's default compiler with its ``noalias`` flag set (every array argument's data pointer marked
-    ``noalias``); numba has the flag but no ``njit`` option for it, so the pipeline class sets it."""
-    if not _NOALIAS_COMPILER:
+_DEPTH = [0]  # nesting of compilations (numba compiles one at a time, under its compiler lock)
+
+
+@contextlib.contextmanager
+def _vectoriser_settings():
+    """:data:`VECTOR_OPTIONS` set while a kernel compiles, LLVM's defaults after (other numba code in the process
+    keeps them). A forced vector width makes LLVM print a remark to the process's stderr for every loop it cannot
+    vectorise; those lines are dropped, anything else written there meanwhile is passed on."""
+    if _DEPTH[0]:  # a callee compiling inside its caller's compilation: the settings are in place
+        yield
+        return
+    import llvmlite.binding as llvm
+
+    def set_options(which: int) -> None:
+        for name, values in VECTOR_OPTIONS.items():
+            llvm.set_option("egorefine", f"-{name}={values[which]}")
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no stderr to filter
+        saved = None
+    log = tempfile.TemporaryFile() if saved is not None else None
+    if log is not None:
+        os.dup2(log.fileno(), 2)
+    set_options(0)
+    _DEPTH[0] += 1
+    try:
+        yield
+    finally:
+        _DEPTH[0] -= 1
+        set_options(1)
+        if log is not None:
+            os.dup2(saved, 2)
+            os.close(saved)
+            log.seek(0)
+            kept = [line for line in log.read().splitlines(keepends=True) if not line.startswith(b"remark: ")]
+            log.close()
+            if kept:
+                os.write(2, b"".join(kept))
+
+
+_COMPILERS: dict[bool, type] = {}
+
+
+def _compiler(noalias: bool) -> type:
+    """numba's default compiler under :func:`_vectoriser_settings`, and with ``noalias`` its flag of that name set
+    (every array argument's data pointer marked ``noalias``; numba has the flag but no ``njit`` option for it)."""
+    if noalias not in _COMPILERS:
         from numba.core import compiler
 
-        class NoAliasCompiler(compiler.Compiler):
+        class Compiler(compiler.Compiler):
             def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
-                flags = flags.copy()
-                flags.noalias = True
+                if noalias:
+                    flags = flags.copy()
+                    flags.noalias = True
                 super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
 
-        _NOALIAS_COMPILER.append(NoAliasCompiler)
-    return _NOALIAS_COMPILER[0]
+            def _compile_core(self):
+                with _vectoriser_settings():
+                    return super()._compile_core()
+
+        _COMPILERS[noalias] = Compiler
+    return _COMPILERS[noalias]
 
 
 def thread_count(threads: int | None = None) -> int:

@@ -1,3 +1,4 @@
+import numpy as np
 import pytest
 
 from egorefine.core import _jit
@@ -109,3 +110,37 @@ def test_scratch_reuses_a_thread_buffer_and_releases_by_prefix():
     assert not np.shares_memory(_jit.scratch("test.b", (4, 5), np.float32), a)
     assert np.shares_memory(kept, _jit.scratch("keep.x", (3,), np.float32))  # another prefix stays
     _jit.release_scratch("keep.")
+
+
+
+def _short_loop(a, out):
+    # a short loop that LLVM vectorises: int16 products and their minimum
+    lo = np.int16(32767)
+    for j in range(a.shape[0]):
+        v = np.int16(a[j] * np.int16(3))
+        out[j] = v
+        lo = min(lo, v)
+    return lo
+
+
+@pytest.mark.skipif(not _jit.AVAILABLE, reason="numba not installed")
+def test_vectoriser_settings_apply_to_our_kernels_only(capfd):
+    # The forced vector width and interleave are set while one of our kernels compiles and reset after: a plain
+    # numba function compiled afterwards gets the same machine code as one compiled before, and LLVM's remarks
+    # about loops it could not vectorise do not reach stderr, while other output written meanwhile does.
+    import os
+
+    a = np.arange(40, dtype=np.int16)
+    compiled = {}
+    for name, options in (("before", {}), ("ours", {"pipeline_class": _jit._compiler(False)}), ("after", {})):
+        f = compiled[name] = _jit.numba.njit(**options)(_short_loop)
+        out = np.empty_like(a)
+        assert f(a, out) == 0 and (out == a * 3).all()
+    lines = {k: len(next(iter(f.inspect_asm().values())).splitlines()) for k, f in compiled.items()}
+    assert lines["after"] == lines["before"]
+    assert lines["ours"] != lines["before"]  # the settings did change our kernel's code
+
+    with _jit._vectoriser_settings():
+        os.write(2, b"remark: <unknown>:0:0: loop not vectorized\nkept line\n")
+    err = capfd.readouterr().err
+    assert "kept line" in err and "remark:" not in err
