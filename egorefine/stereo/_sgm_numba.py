@@ -57,11 +57,10 @@ if AVAILABLE:  # numba is a dependency, but the package stays importable (torch 
 _INVALID_CODE = int(np.array(1.0e6, dtype=np.float32).view(np.int32))
 
 
-def _band_rows(num: int) -> int:
-    """Rows whose horizontal paths step together (_horizontal_band): 8, or 4 above 32 candidates, where the band's
-    rows of costs and sums (each a multiple of 4 KiB apart for many image widths) outnumber the ways of an L1
-    cache set (docs/decisions.md, "Two SGM passes")."""
-    return 8 if num <= 32 else 4
+# Rows whose horizontal paths step together (_horizontal_band): with more, the band's rows of costs and sums (each a
+# multiple of 4 KiB apart for many image widths) outnumber the ways of an L1 cache set; with fewer, each column step
+# has less independent work (docs/decisions.md, "Two SGM passes" and "Vector width of the kernels").
+BAND_ROWS = 4
 
 
 if AVAILABLE:
@@ -650,7 +649,7 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)
         rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
-        band = _band_rows(num)
+        band = BAND_ROWS
         run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], band, f1, f2,
                                     path_pad, *tables[:2], cost, acc, colsum_like, shifts if fused else 0,
                                     max_disparity), row_bands)
