@@ -60,8 +60,8 @@ def jit(fn=None, inline: str = "never", fastmath: bool | set[str] = False, error
 # LLVM loop-vectoriser settings for every kernel compiled here, ``{option: (value, LLVM's default)}``. The loops over
 # disparity candidates (and other short rows) have a run-time trip count of a few dozen; left to its cost model,
 # LLVM unrolls each vector loop so that one pass of its vector body takes 64 int16 lanes (two 512-bit or four 256-bit
-# vectors) and runs every shorter remainder one element at a time, so that 16, 32 or 48 candidates ran without SIMD
-# at all. One 16-lane vector per step, not unrolled, covers any multiple of 16 on AVX2 and AVX-512 alike
+# vectors) and runs every shorter remainder one element at a time, so that a loop over fewer than 64 candidates gets
+# no SIMD code at all. One 16-lane vector per step, not unrolled, covers any multiple of 16 on AVX2 and AVX-512 alike
 # (docs/decisions.md, "Vector width of the kernels").
 VECTOR_OPTIONS = {"force-vector-interleave": ("1", "0"), "force-vector-width": ("16", "0")}
 
@@ -89,11 +89,11 @@ def _vectoriser_settings():
     except (OSError, ValueError):  # no stderr to filter
         saved = None
     log = tempfile.TemporaryFile() if saved is not None else None
-    if log is not None:
-        os.dup2(log.fileno(), 2)
-    set_options(0)
     _DEPTH[0] += 1
     try:
+        if log is not None:
+            os.dup2(log.fileno(), 2)
+        set_options(0)
         yield
     finally:
         _DEPTH[0] -= 1

@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -112,7 +114,6 @@ def test_scratch_reuses_a_thread_buffer_and_releases_by_prefix():
     _jit.release_scratch("keep.")
 
 
-
 def _short_loop(a, out):
     # a short loop that LLVM vectorises: int16 products and their minimum
     lo = np.int16(32767)
@@ -128,8 +129,6 @@ def test_vectoriser_settings_apply_to_our_kernels_only(capfd):
     # The forced vector width and interleave are set while one of our kernels compiles and reset after: a plain
     # numba function compiled afterwards gets the same machine code as one compiled before, and LLVM's remarks
     # about loops it could not vectorise do not reach stderr, while other output written meanwhile does.
-    import os
-
     a = np.arange(40, dtype=np.int16)
     compiled = {}
     for name, options in (("before", {}), ("ours", {"pipeline_class": _jit._compiler(False)}), ("after", {})):
