@@ -7,6 +7,7 @@ with the optional Rerun SDK (the ``rerun`` extra), imported only when they are c
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,8 @@ import torch
 
 from ._rerun import RERUN_ENTITIES, RerunLogger, RerunNotInstalledError, log_rerun
 
-__all__ = ["RERUN_ENTITIES", "RerunLogger", "RerunNotInstalledError", "colorize_disparity", "log_rerun",
+__all__ = ["RERUN_ENTITIES", "RerunLogger", "RerunNotInstalledError", "colorize_disparity",
+           "disparity_palette_image", "log_rerun",
            "save_maps_figure", "save_row_figure", "save_trajectory_figure"]
 
 #: colour of pixels without a value in every figure (mid grey: outside the turbo and magma colour maps)
@@ -30,6 +32,8 @@ def colorize_disparity(
 ) -> np.ndarray:
     """A ``(H, W)`` disparity map as an ``(H, W, 3)`` uint8 RGB image (turbo colour map, 0 px to ``max_disparity``).
 
+    The colours are those of :func:`disparity_palette_image`'s palette at its indices.
+
     Args:
         disparity: ``(H, W)`` (or with leading ones) disparity in pixels.
         max_disparity: the disparity shown at the top of the colour map, px.
@@ -43,12 +47,52 @@ def colorize_disparity(
         >>> colorize_disparity(torch.ones(4, 5), 8.0).shape
         (4, 5, 3)
     """
+    index, palette = disparity_palette_image(disparity, max_disparity, valid, invalid_color)
+    return palette[index]
+
+
+def disparity_palette_image(
+    disparity: torch.Tensor,
+    max_disparity: float,
+    valid: torch.Tensor | None = None,
+    invalid_color: tuple[int, int, int] = (0, 0, 0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """A ``(H, W)`` disparity map as palette indices and the palette: the colour image of
+    :func:`colorize_disparity` in a third of the bytes (an indexed-colour PNG stores it as it is).
+
+    Indices 0-254 are the first 255 colours of OpenCV's turbo map: pixel ``d`` gets ``floor(255 d /
+    max_disparity)``, clipped to [0, 254] (so 254 from ``254/255 max_disparity`` up); index 255 is ``invalid_color``.
+
+    Args:
+        disparity: ``(H, W)`` (or with leading ones) disparity in pixels.
+        max_disparity: the disparity at the top of the colour map, px.
+        valid: same shape, bool; pixels that are False get index 255 (default: all valid).
+        invalid_color: RGB of index 255.
+
+    Returns:
+        ``(index, palette)``: ``(H, W)`` uint8 and ``(256, 3)`` uint8 RGB (read-only; shared between calls).
+
+    Example:
+        >>> index, palette = disparity_palette_image(torch.tensor([[0.0, 4.0, 9.0]]), 8.0,
+        ...                                          torch.tensor([[True, True, False]]), (128, 128, 128))
+        >>> index.tolist(), palette[255].tolist()
+        ([[0, 127, 255]], [128, 128, 128])
+    """
     d = disparity.detach().float().cpu().reshape(disparity.shape[-2:]).numpy()
-    scaled = np.clip(d / max(max_disparity, 1e-6) * 255.0, 0, 255).astype(np.uint8)
-    rgb = cv2.cvtColor(cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+    index = np.clip(d / max(max_disparity, 1e-6) * 255.0, 0, 254).astype(np.uint8)
     if valid is not None:
-        rgb[~valid.detach().cpu().reshape(d.shape).numpy().astype(bool)] = invalid_color
-    return rgb
+        invalid = ~valid.detach().cpu().reshape(d.shape).numpy().astype(bool)
+        np.bitwise_or(index, invalid.view(np.uint8) * np.uint8(255), out=index)  # 255 where invalid
+    return index, _turbo_palette(tuple(int(c) for c in invalid_color))
+
+
+@functools.lru_cache(maxsize=8)
+def _turbo_palette(invalid_color: tuple[int, int, int]) -> np.ndarray:
+    """OpenCV's turbo colour map (RGB), its last entry replaced by ``invalid_color``; read-only, cached."""
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1].copy()
+    lut[255] = invalid_color
+    lut.flags.writeable = False
+    return lut
 
 
 def _pyplot():

@@ -76,35 +76,44 @@ def test_unknown_output_name_gives_one_line_with_the_valid_names(layout, tmp_pat
     assert not (tmp_path / "o").exists()
 
 
-def _failing_imwrite(monkeypatch, after: int, error: OSError | None):
-    """cv2.imwrite that writes ``after`` files, then raises ``error`` (or returns False, as OpenCV does when it
-    cannot open the file, where ``error`` is None)."""
-    real, calls, lock = cv2.imwrite, [0], threading.Lock()
+def _failing_writes(monkeypatch, after: int, error: OSError):
+    """The PNG writer's files: the first ``after`` are written, every later one raises ``error`` on its first write
+    (as a full disk does)."""
+    calls, lock = [0], threading.Lock()
+    io_module = importlib.import_module("egorefine.data.io")
 
-    def imwrite(path, image, *args):
+    class _FullDisk:
+        def __init__(self, f):
+            self._f = f
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._f.close()
+
+        def write(self, data):
+            raise error
+
+    def open_(path, mode="r", *args, **kwargs):
+        f = open(path, mode, *args, **kwargs)
         with lock:
-            calls[0] += 1
+            calls[0] += "w" in mode
             fail = calls[0] > after
-        if not fail:
-            return real(path, image, *args)
-        if error is None:
-            return False
-        raise error
+        return _FullDisk(f) if fail else f
 
-    monkeypatch.setattr(cv2, "imwrite", imwrite)
+    monkeypatch.setattr(io_module, "open", open_, raising=False)
 
 
-@pytest.mark.parametrize("error", [OSError(errno.ENOSPC, "No space left on device"), None],
-                         ids=["disk full", "imwrite false"])
-def test_writer_failure_stops_the_run_with_one_line_and_no_run_json(layout, tmp_path, capsys, monkeypatch, error):
+@pytest.mark.parametrize("png", ["fast", "small"])
+def test_writer_failure_stops_the_run_with_one_line_and_no_run_json(layout, tmp_path, capsys, monkeypatch, png):
     root, _ = layout
     finished = tmp_path / "finished"
     assert main(_run_argv(root, finished)) == 0
-    _failing_imwrite(monkeypatch, after=5, error=error)  # fails during the second frame (four PNGs a frame)
+    _failing_writes(monkeypatch, after=5, error=OSError(errno.ENOSPC, "No space left on device"))  # frame 2 of 4 PNGs
     capsys.readouterr()
-    assert _code(_run_argv(root, finished, "--overwrite")) == 2
-    line = _one_line_error(capsys.readouterr().err)
-    assert ("No space left on device" if error is not None else "could not write a PNG") in line
+    assert _code(_run_argv(root, finished, "--overwrite", "--png", png)) == 2
+    assert "No space left on device" in _one_line_error(capsys.readouterr().err)
     # The earlier run's run.json was removed before refining and none was written: the folder is unfinished.
     assert not (finished / "run.json").exists()
     assert not list(finished.glob("trajectory_*.txt"))
@@ -160,6 +169,7 @@ def test_threaded_files_equal_the_library_writers_in_order(layout, tmp_path, fmt
             write_confidence(ref / "confidence" / stem, result.confidence[0, 0], fmt)
             write_preview(ref / "preview" / f"{stem}.png",
                           colorize_disparity(disp, args.max_disparity, valid, invalid_color=_run_module._INVALID_RGB))
+            # (the run writes the same colours as an indexed-colour PNG; decoded, the pixels are equal)
     for name in ALL:
         files = sorted(p.name for p in (ref / name).iterdir())
         assert sorted(p.name for p in (out / name).iterdir()) == files and len(files) == T

@@ -9,7 +9,13 @@ import torch
 
 from egorefine.cli import main
 from egorefine.data import read_pfm, render_sequence
-from egorefine.viz import colorize_disparity, save_maps_figure, save_row_figure, save_trajectory_figure
+from egorefine.viz import (
+    colorize_disparity,
+    disparity_palette_image,
+    save_maps_figure,
+    save_row_figure,
+    save_trajectory_figure,
+)
 
 
 @pytest.fixture(scope="module")
@@ -73,3 +79,19 @@ def test_trajectory_figure(seq, tmp_path):
     path = save_trajectory_figure(tmp_path / "t.png", {"truth": seq.poses, "estimated": seq.poses.flip(0)})
     image = cv2.imread(str(path))
     assert image is not None and image.shape[0] > 300
+
+
+def test_disparity_palette_image_matches_the_turbo_map():
+    """Index ``floor(255 d / max)`` clipped to 254, invalid (and only invalid) pixels 255; the palette is OpenCV's
+    turbo map in RGB with the invalid colour last, and ``colorize_disparity`` is the palette at the indices."""
+    max_d = 32.0
+    d = torch.tensor([[0.0, 0.12, 0.13, 16.0, 31.8, 31.9, 32.0, 40.0, -3.0, 20.0]])
+    valid = torch.ones_like(d, dtype=torch.bool)
+    valid[0, -1] = False
+    index, palette = disparity_palette_image(d, max_d, valid, (128, 128, 128))
+    assert index.tolist() == [[0, 0, 1, 127, 253, 254, 254, 254, 0, 255]]
+    turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    assert palette.shape == (256, 3) and np.array_equal(palette[:255], turbo[:255])
+    assert palette[255].tolist() == [128, 128, 128]
+    assert np.array_equal(colorize_disparity(d, max_d, valid, (128, 128, 128)), palette[index])
+    assert disparity_palette_image(d, max_d)[0].max() <= 254  # no mask: nothing invalid

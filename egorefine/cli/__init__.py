@@ -21,6 +21,7 @@ import sys
 
 from .. import __version__
 from ..core import EgorefineError, machine_info
+from ..data import PNG_ENCODINGS
 
 # The parser and main() live here, the work of each command in a private module of its own: _demo, _run (with the
 # deprecated folder command), _eval; _shared holds what they share.
@@ -254,6 +255,10 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--format", default="png16", choices=["png16", "npy", "pfm"],
                      help="disparity and confidence files: KITTI 16-bit PNG (1/256 px steps, 0 = invalid), float32 "
                           "npy (NaN = invalid) or PFM (+inf = invalid)")
+    run.add_argument("--png", default="fast", choices=sorted(PNG_ENCODINGS),
+                     help="PNG encoding of the disparity, confidence and preview files: fast (stored, not deflated: "
+                          "larger files, several times cheaper to write) or small (OpenCV's deflate); the pixels are "
+                          "the same")
     run.add_argument("--outputs", type=parse_outputs, default=",".join(_FRAME_DIRS), metavar="NAME[,NAME...]",
                      help="per-frame files to write, comma-separated: disparity, valid, confidence, preview; 'none' "
                           "writes only the trajectory and run.json")

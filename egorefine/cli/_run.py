@@ -116,22 +116,22 @@ class _Writer:
             self._raise()
 
 
-def _write_frame(out: Path, stem: str, outputs: tuple[str, ...], fmt: str, max_disparity: int,
+def _write_frame(out: Path, stem: str, outputs: tuple[str, ...], fmt: str, png: str, max_disparity: int,
                  disparity: np.ndarray, valid: np.ndarray, confidence: np.ndarray | None) -> None:
     """Write the ``outputs`` of one frame (run on a writer thread, from arrays no later frame touches)."""
     from ..data import write_confidence, write_disparity, write_mask, write_preview
-    from ..viz import colorize_disparity
+    from ..viz import disparity_palette_image
 
     if "disparity" in outputs:
-        write_disparity(out / "disparity" / stem, disparity, valid, fmt)
+        write_disparity(out / "disparity" / stem, disparity, valid, fmt, png)
     if "valid" in outputs:
         write_mask(out / "valid" / f"{stem}.png", valid)
     if "confidence" in outputs:
-        write_confidence(out / "confidence" / stem, confidence, fmt)
+        write_confidence(out / "confidence" / stem, confidence, fmt, png)
     if "preview" in outputs:
-        write_preview(out / "preview" / f"{stem}.png",
-                      colorize_disparity(torch.from_numpy(disparity), max_disparity, torch.from_numpy(valid),
-                                         invalid_color=_INVALID_RGB))
+        index, palette = disparity_palette_image(torch.from_numpy(disparity), max_disparity, torch.from_numpy(valid),
+                                                 invalid_color=_INVALID_RGB)
+        write_preview(out / "preview" / f"{stem}.png", index, png, palette)
 
 
 def _own_copy(x: torch.Tensor) -> np.ndarray:
@@ -246,7 +246,8 @@ def _run_report(args: argparse.Namespace, rec, device: torch.device, frames: dic
         "valid": "valid/<frame>.png: uint8, 255 = valid",
         "confidence": f"confidence/<frame>{suffix}: 1 / (1 + variance px^2) in [0, 1]"
                       + (", stored as value / 65535" if args.format == "png16" else ""),
-        "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid",
+        "preview": f"preview/<frame>.png: turbo colour map, 0 to {args.max_disparity} px, grey = invalid "
+                   "(indexed colour)",
     }
     return {
         "egorefine_version": __version__,
@@ -343,7 +344,7 @@ def _run(args: argparse.Namespace, on_progress: Callable[[int, int], object] | N
     world_T_camera = [torch.eye(4, dtype=torch.float64) if rec.poses is None else rec.poses[0].double().cpu()]
     refine_ms, stereo_frames, motion_failed = [], 0, 0
     state = None
-    write = functools.partial(_write_frame, out, outputs=args.outputs, fmt=args.format,
+    write = functools.partial(_write_frame, out, outputs=args.outputs, fmt=args.format, png=args.png,
                               max_disparity=args.max_disparity)
     writer = _Writer(_WRITER_THREADS, _WRITER_DEPTH)
     # The Rerun recording is logged on a thread of its own, one frame after the other (the trajectory grows in

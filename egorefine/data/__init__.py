@@ -5,7 +5,7 @@ from ._imaging import IMAGING, Imaging
 from .calib import CAMERAS, StereoCalibration, read_calibration, rectify_maps
 from .euroc import EurocSequence, load_euroc, read_euroc_sensor
 from .folder import ImageFolderSequence, read_grey
-from .io import read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm
+from .io import PNG_ENCODINGS, read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm, write_png
 from .recording import LAYOUTS, StereoRecording, open_recording, oxts_to_poses
 from .results import (
     DISPARITY_FORMATS,
@@ -27,6 +27,7 @@ __all__ = [
     "FAMILIES",
     "IMAGING",
     "MOTIONS",
+    "PNG_ENCODINGS",
     "PRESETS",
     "ROSBAG_ENCODINGS",
     "SCENES",
@@ -59,6 +60,7 @@ __all__ = [
     "write_kitti_poses",
     "write_mask",
     "write_pfm",
+    "write_png",
     "write_preview",
     "write_tum",
 ]

@@ -451,4 +451,4 @@ def rectify_maps(calib: StereoCalibration) -> tuple[
 def _remap(image: np.ndarray, map_xy: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """One camera's image through its rectification table (bilinear, edge pixels repeated), kept in [0, 1]."""
     out = cv2.remap(image, map_xy[0], map_xy[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return np.clip(out, 0.0, 1.0)
+    return np.clip(out, 0.0, 1.0, out=out)

@@ -58,9 +58,9 @@ def _grey(raw: np.ndarray, code: int | None = None) -> np.ndarray:
             code = cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         raw = cv2.cvtColor(raw, code)
     if raw.dtype == np.uint8:
-        return raw.astype(np.float32) / 255.0
+        return np.divide(raw, 255.0, dtype=np.float32)  # one pass; the same values as a cast, then a division
     if raw.dtype == np.uint16:
-        return raw.astype(np.float32) / 65535.0
+        return np.divide(raw, 65535.0, dtype=np.float32)
     return np.clip(raw.astype(np.float32), 0.0, 1.0)
 
 

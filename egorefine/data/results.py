@@ -23,12 +23,11 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 from ..core import ShapeError, ValueRangeError
-from .io import read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm
+from .io import _check_png, read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm, write_png
 
 __all__ = [
     "DISPARITY_FORMATS",
@@ -45,8 +44,8 @@ PathLike = str | os.PathLike
 #: format name -> file suffix of the disparity and confidence files
 DISPARITY_FORMATS = {"png16": ".png", "pfm": ".pfm", "npy": ".npy"}
 
-# The PNG writers pass OpenCV no encoder parameters on purpose: its default (zlib level 1, SUB filter, RLE strategy)
-# is its fastest setting, and an explicit IMWRITE_PNG_COMPRESSION level drops that tuning (docs/cli.md, egorefine run).
+# The mask is always written in OpenCV's default PNG encoding (no parameters): a two-valued image deflates to a small
+# fraction of its size at about the cost of storing it. The other writers take a ``png`` encoding (io.PNG_ENCODINGS).
 
 
 @contextlib.contextmanager
@@ -102,7 +101,11 @@ def _write_float(path: Path, values: np.ndarray, fmt: str) -> None:
 
 
 def write_disparity(
-    stem: PathLike, disparity: torch.Tensor | np.ndarray, valid: torch.Tensor | np.ndarray, fmt: str = "png16"
+    stem: PathLike,
+    disparity: torch.Tensor | np.ndarray,
+    valid: torch.Tensor | np.ndarray,
+    fmt: str = "png16",
+    png: str = "fast",
 ) -> Path:
     """Write one disparity map in ``fmt``, its invalid pixels marked as the format marks them.
 
@@ -112,6 +115,8 @@ def write_disparity(
         valid: same shape, bool; pixels that are False (and non-finite or non-positive disparities) are invalid.
         fmt: ``"png16"`` (default: KITTI's format, read by its devkit and most stereo tools; 1/256 px steps),
             ``"pfm"`` or ``"npy"`` (float32, lossless).
+        png: the PNG encoding of ``"png16"``, a name in :data:`~egorefine.data.PNG_ENCODINGS`: ``"fast"``
+            (default: stored, not deflated; the pixels are the same either way) or ``"small"`` (deflated).
 
     Returns:
         The written file.
@@ -124,20 +129,23 @@ def write_disparity(
         ('.png', [[1.5, 2.0], [0.0, 3.25]], [[True, True], [False, True]])
     """
     path = Path(os.fspath(stem) + _check_format(fmt))
-    d = _plane(disparity, "disparity").astype(np.float32)
-    v = _plane(valid, "valid").astype(bool)
+    _check_png(png)
+    d = _plane(disparity, "disparity").astype(np.float32, copy=False)
+    v = _plane(valid, "valid").astype(bool, copy=False)
     if v.shape != d.shape:
         raise ShapeError(f"valid: expected shape {d.shape} of disparity, got {v.shape}")
-    ok = v & np.isfinite(d) & (d > 0)
     with atomic_path(path) as tmp:
         if fmt == "png16":
-            write_kitti_disparity(tmp, d, ok)
+            write_kitti_disparity(tmp, d, v, png)
         else:
+            ok = v & np.isfinite(d) & (d > 0)
             _write_float(tmp, np.where(ok, d, np.inf if fmt == "pfm" else np.nan).astype(np.float32), fmt)
     return path
 
 
-def write_confidence(stem: PathLike, confidence: torch.Tensor | np.ndarray, fmt: str = "png16") -> Path:
+def write_confidence(
+    stem: PathLike, confidence: torch.Tensor | np.ndarray, fmt: str = "png16", png: str = "fast"
+) -> Path:
     """Write a confidence map in [0, 1]: a 16-bit PNG ``value = round(65535 c)`` for ``"png16"``, else float32.
 
     Args:
@@ -145,6 +153,7 @@ def write_confidence(stem: PathLike, confidence: torch.Tensor | np.ndarray, fmt:
         confidence: ``(H, W)`` (or with leading ones) values in [0, 1] (clipped), e.g. the refiner's
             ``1 / (1 + variance)``.
         fmt: as in :func:`write_disparity`.
+        png: as in :func:`write_disparity`.
 
     Returns:
         The written file.
@@ -157,12 +166,16 @@ def write_confidence(stem: PathLike, confidence: torch.Tensor | np.ndarray, fmt:
         ('.png', [[0, 32768], [65535, 65535]])
     """
     path = Path(os.fspath(stem) + _check_format(fmt))
-    c = np.clip(np.nan_to_num(_plane(confidence, "confidence").astype(np.float32)), 0.0, 1.0)
+    _check_png(png)
+    c = _plane(confidence, "confidence")
     with atomic_path(path) as tmp:
         if fmt == "png16":
-            if not cv2.imwrite(os.fspath(tmp), np.round(c * 65535.0).astype(np.uint16)):
-                raise ValueRangeError(f"path: could not write a PNG to {os.fspath(path)!r}")
+            value = np.multiply(c, 65535.0, dtype=np.float32)
+            np.fmax(value, 0.0, out=value)  # NaN -> 0 (fmax takes the number)
+            np.minimum(value, 65535.0, out=value)
+            write_png(tmp, np.rint(value, out=value).astype(np.uint16), png)
         else:
+            c = np.clip(np.nan_to_num(c.astype(np.float32)), 0.0, 1.0)
             _write_float(tmp, c, fmt)
     return path
 
@@ -190,24 +203,26 @@ def write_mask(path: PathLike, mask: torch.Tensor | np.ndarray) -> Path:
     path = Path(path)
     m = _plane(mask, "mask").astype(bool)
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(os.fspath(tmp), m.astype(np.uint8) * 255):
-            raise ValueRangeError(f"path: could not write a PNG to {os.fspath(path)!r}")
+        write_png(tmp, m.astype(np.uint8) * 255, "small")
     return path
 
 
-def write_preview(path: PathLike, rgb: np.ndarray) -> Path:
-    """Write an RGB image (e.g. :func:`egorefine.viz.colorize_disparity`) as a PNG (written atomically).
+def write_preview(path: PathLike, image: np.ndarray, png: str = "fast", palette: np.ndarray | None = None) -> Path:
+    """Write a colour image (e.g. :func:`egorefine.viz.colorize_disparity`) as a PNG (written atomically).
 
     Args:
         path: the ``.png`` file to write.
-        rgb: ``(H, W, 3)`` uint8 array, RGB order.
+        image: ``(H, W, 3)`` uint8 array, RGB order; or, with ``palette``, ``(H, W)`` uint8 indices into it (e.g.
+            from :func:`egorefine.viz.disparity_palette_image`: an indexed-colour PNG, a third of the bytes).
+        png: the PNG encoding, as in :func:`write_disparity`.
+        palette: ``(N, 3)`` uint8 RGB colours, ``N <= 256``; default None (``image`` is RGB).
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
 
     Raises:
-        ShapeError: not an ``(H, W, 3)`` uint8 array.
-        ValueRangeError: the PNG could not be written.
+        ShapeError: not an ``(H, W, 3)`` uint8 array (or ``(H, W)`` with a palette).
+        ValueRangeError: an unknown ``png``.
 
     Example:
         >>> import tempfile, pathlib, numpy as np
@@ -215,11 +230,11 @@ def write_preview(path: PathLike, rgb: np.ndarray) -> Path:
         '.png'
     """
     path = Path(path)
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ShapeError(f"rgb: expected an (H, W, 3) uint8 image, got {rgb.dtype} {tuple(rgb.shape)}")
+    if palette is None and (image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8):
+        raise ShapeError(f"rgb: expected an (H, W, 3) uint8 image, got {image.dtype} {tuple(image.shape)}")
+    _check_png(png)
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(os.fspath(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-            raise ValueRangeError(f"path: could not write a PNG to {os.fspath(path)!r}")
+        write_png(tmp, image, png, palette)
     return path
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from egorefine.core import ShapeError, ValueRangeError
-from egorefine.data import read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm
+from egorefine.data import PNG_ENCODINGS, read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm, write_png
 
 
 @pytest.mark.parametrize("little_endian", [True, False])
@@ -71,12 +71,46 @@ def test_kitti_png_round_trip(tmp_path) -> None:
     assert int(raw[ok[0].numpy()][0]) == int(round(float(d[ok][0]) * 256))
 
 
-def test_kitti_png_invalid_values(tmp_path) -> None:
-    d = torch.tensor([[[0.0, -1.0, float("nan"), 1e6, 1e-4]]])
-    write_kitti_disparity(tmp_path / "e.png", d)
+@pytest.mark.parametrize("png", PNG_ENCODINGS)
+def test_kitti_png_invalid_values(tmp_path, png: str) -> None:
+    inf, nan = float("inf"), float("nan")
+    d = torch.tensor([[[0.0, -1.0, nan, 1e6, 1e-4, inf, -inf, 2.5]]])
+    valid = torch.tensor([[[True, True, True, True, True, True, True, False]]])
+    write_kitti_disparity(tmp_path / "e.png", d, valid, png=png)
     back, ok = read_kitti_disparity(tmp_path / "e.png")
-    assert ok.tolist() == [[[False, False, False, True, True]]]
+    assert ok.tolist() == [[[False, False, False, True, True, False, False, False]]]
     assert back[0, 0, 3] == pytest.approx(65535 / 256) and back[0, 0, 4] == pytest.approx(1 / 256)
+    assert (back[~ok] == 0).all()
+
+
+@pytest.mark.parametrize("png", PNG_ENCODINGS)
+@pytest.mark.parametrize(("dtype", "channels"), [(np.uint8, 1), (np.uint16, 1), (np.uint8, 3), (np.uint16, 3)])
+def test_png_encodings_hold_the_same_pixels(tmp_path, png: str, dtype, channels: int) -> None:
+    """Every encoding reads back as written, through OpenCV's decoder (which checks the chunks' CRCs); the image is
+    large enough that the stored encoding needs several deflate blocks (at most 65535 bytes each)."""
+    rng = np.random.default_rng(5)
+    shape = (151, 203) if channels == 1 else (151, 203, 3)
+    image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    image[0, :5] = np.iinfo(dtype).max  # the extremes and a byte order that a swap would show
+    image[1, :5] = 0x0102 if dtype == np.uint16 else 0x12
+    path = tmp_path / f"{png}.png"
+    write_png(path, image, png)
+    back = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == dtype and back.shape == image.shape
+    assert np.array_equal(back if channels == 1 else back[..., ::-1], image)  # RGB in, OpenCV reads BGR
+    raw_bytes = image.nbytes + image.shape[0]  # the rows and a filter byte each
+    if png == "fast":  # stored: the raw rows plus framing, nothing deflated
+        assert raw_bytes < path.stat().st_size < raw_bytes + 200 + 5 * (raw_bytes // 65535 + 1)
+
+
+def test_png_errors(tmp_path) -> None:
+    with pytest.raises(ValueRangeError, match="png"):
+        write_png(tmp_path / "a.png", np.zeros((2, 3), np.uint8), "deflated")
+    with pytest.raises(ShapeError, match="image"):
+        write_png(tmp_path / "a.png", np.zeros((2, 3), np.float32))
+    with pytest.raises(ShapeError, match="image"):
+        write_png(tmp_path / "a.png", np.zeros((2, 3, 4), np.uint8))
+    assert not list(tmp_path.iterdir())
 
 
 def test_kitti_png_errors(tmp_path) -> None:

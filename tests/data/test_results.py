@@ -9,6 +9,7 @@ import torch
 
 from egorefine.core import ShapeError, ValueRangeError
 from egorefine.data import (
+    PNG_ENCODINGS,
     atomic_path,
     read_disparity,
     read_kitti_disparity,
@@ -18,6 +19,7 @@ from egorefine.data import (
     write_mask,
     write_preview,
 )
+from egorefine.viz import colorize_disparity, disparity_palette_image
 
 
 @pytest.fixture
@@ -52,15 +54,26 @@ def test_disparity_round_trip_marks_invalid_pixels(tmp_path, disparity, fmt, tol
 
 def test_confidence_mask_preview(tmp_path):
     c = torch.tensor([[0.0, 0.25, 1.0], [0.5, 2.0, -1.0]])
-    raw = cv2.imread(str(write_confidence(tmp_path / "c", c)), cv2.IMREAD_UNCHANGED)
-    assert raw.dtype == np.uint16 and raw.tolist() == [[0, 16384, 65535], [32768, 65535, 0]]
+    for png in PNG_ENCODINGS:
+        raw = cv2.imread(str(write_confidence(tmp_path / png, c, png=png)), cv2.IMREAD_UNCHANGED)
+        assert raw.dtype == np.uint16 and raw.tolist() == [[0, 16384, 65535], [32768, 65535, 0]]
+    odd = torch.tensor([[float("nan"), float("inf"), -float("inf")]])
+    assert cv2.imread(str(write_confidence(tmp_path / "o", odd)), cv2.IMREAD_UNCHANGED).tolist() == [[0, 65535, 0]]
     assert np.load(write_confidence(tmp_path / "c", c, "npy")).tolist() == [[0.0, 0.25, 1.0], [0.5, 1.0, 0.0]]
     mask = cv2.imread(str(write_mask(tmp_path / "m.png", c > 0.3)), cv2.IMREAD_UNCHANGED)
     assert mask.dtype == np.uint8 and mask.tolist() == [[0, 0, 255], [255, 255, 0]]
     rgb = np.zeros((2, 3, 3), np.uint8)
     rgb[..., 0] = 200  # red in RGB: blue-channel-last on disk is OpenCV's business
-    bgr = cv2.imread(str(write_preview(tmp_path / "p.png", rgb)))
-    assert (bgr[..., 2] == 200).all() and (bgr[..., 0] == 0).all()
+    for png in PNG_ENCODINGS:
+        bgr = cv2.imread(str(write_preview(tmp_path / f"{png}.png", rgb, png)))
+        assert (bgr[..., 2] == 200).all() and (bgr[..., 0] == 0).all()
+    # an indexed-colour preview decodes to the colour image the palette gives
+    d = torch.tensor([[0.0, 3.0, 7.9], [8.0, 50.0, 2.0]])
+    valid = torch.tensor([[True, True, True], [True, True, False]])
+    index, palette = disparity_palette_image(d, 8.0, valid, (128, 128, 128))
+    for png in PNG_ENCODINGS:
+        bgr = cv2.imread(str(write_preview(tmp_path / f"i{png}.png", index, png, palette)))
+        assert np.array_equal(bgr[..., ::-1], colorize_disparity(d, 8.0, valid, (128, 128, 128)))
 
 
 def test_atomic_path_keeps_the_old_file_on_error(tmp_path):
@@ -76,6 +89,11 @@ def test_bad_arguments(tmp_path, disparity):
     d, valid = disparity
     with pytest.raises(ValueRangeError, match="fmt"):
         write_disparity(tmp_path / "f", d, valid, "tiff")
+    for write in (lambda: write_disparity(tmp_path / "f", d, valid, "npy", "zip"),
+                  lambda: write_confidence(tmp_path / "f", d, png="zip"),
+                  lambda: write_preview(tmp_path / "p.png", np.zeros((2, 3, 3), np.uint8), "zip")):
+        with pytest.raises(ValueRangeError, match="png"):
+            write()
     with pytest.raises(ShapeError, match="valid"):
         write_disparity(tmp_path / "f", d, valid[..., :3])
     with pytest.raises(ShapeError, match="rgb"):
