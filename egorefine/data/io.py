@@ -267,7 +267,8 @@ def write_kitti_disparity(
 
     Raises:
         ShapeError: more than one channel, or ``valid`` of another size.
-        ValueRangeError: the PNG could not be written, or an unknown ``png``.
+        ValueRangeError: an unknown ``png``.
+        OSError: the file system's error (no space, no permission).
 
     Example:
         >>> import tempfile, pathlib

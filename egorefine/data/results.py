@@ -44,8 +44,8 @@ PathLike = str | os.PathLike
 #: format name -> file suffix of the disparity and confidence files
 DISPARITY_FORMATS = {"png16": ".png", "pfm": ".pfm", "npy": ".npy"}
 
-# The mask is always written in OpenCV's default PNG encoding (no parameters): a two-valued image deflates to a small
-# fraction of its size at about the cost of storing it. The other writers take a ``png`` encoding (io.PNG_ENCODINGS).
+# The mask is always written in the "small" PNG encoding: a two-valued image deflates to a small fraction of its size
+# at about the cost of storing it. The other writers take a ``png`` encoding (io.PNG_ENCODINGS).
 
 
 @contextlib.contextmanager
@@ -192,7 +192,7 @@ def write_mask(path: PathLike, mask: torch.Tensor | np.ndarray) -> Path:
 
     Raises:
         ShapeError: not one ``(H, W)`` plane.
-        ValueRangeError: the PNG could not be written.
+        OSError: the file system's error (no space, no permission).
 
     Example:
         >>> import tempfile, pathlib, cv2
