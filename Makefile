@@ -43,6 +43,8 @@ bench: $(VENV)/.installed-dev
 	$(PY) benchmarks/refine.py
 	$(PY) benchmarks/euroc_static.py
 	$(PY) benchmarks/autograd.py
+	$(PY) benchmarks/speed.py
+	$(PY) benchmarks/run_cli.py
 	$(PY) benchmarks/plots.py
 
 clean:
