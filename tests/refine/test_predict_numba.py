@@ -105,6 +105,26 @@ def test_compiled_splat_is_independent_of_threads_batch_and_workspace(scene):
 
 
 @needs_numba
+def test_compiled_splat_z_buffer_across_bands(scene):
+    """Points that move into another band's rows (a 20 px vertical shift: most of them, with bands of a few rows):
+    one thread (one band) and four give the same maps, bit for bit (the same kernels on one machine: only the split
+    of the rows differs)."""
+    d, _, K, b, var, valid = scene
+    motion = torch.eye(4)[None]
+    motion[0, 1, 3] = -20 * b[0] / d.median()
+    outs = []
+    for threads in (1, 4):
+        torch.set_num_threads(threads)
+        try:
+            outs.append(predict_disparity(d, motion, K, b, variance=var, valid=valid))
+        finally:
+            torch.set_num_threads(2)
+    assert outs[0].valid.float().mean() > 0.25  # a real prediction (the shifted-out rows are holes)
+    for x, y in zip(*outs, strict=True):
+        assert torch.equal(x, y)
+
+
+@needs_numba
 def test_empty_source_gives_flagged_holes_without_nan():
     d = torch.full((1, 1, 20, 30), -1.0)  # nothing valid
     K = torch.tensor([[[40.0, 0, 15], [0, 40.0, 10], [0, 0, 1]]])
