@@ -56,6 +56,7 @@ SGBM_BLOCK = 5
 OURS = {
     "ours sad (default)": {},
     "ours sgm (census, 4 paths)": {"cost": "census", "aggregation": "sgm", "block_size": 5},
+    "ours sgm (census, 3 paths)": {"cost": "census", "aggregation": "sgm", "block_size": 5, "sgm_paths": 3},
     "ours census": {"cost": "census", "block_size": 7},
     "ours zncc": {"cost": "zncc"},
 }

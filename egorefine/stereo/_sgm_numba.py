@@ -2,7 +2,7 @@
 
 The scanline recursion of SGM is sequential along each path, so the eager torch version in
 :mod:`egorefine.stereo.sgm` pays about ten operator launches per scanline step. Here the
-census cost volume, its box aggregation, the 4 or 8 path costs and the winner selection are
+census cost volume, its box aggregation, the 3, 4 or 8 path costs and the winner selection are
 loops compiled by numba, run in nogil kernels over row or column bands from a thread pool
 (not numba's ``parallel=True``, whose threading layer can clash with torch's OpenMP).
 
@@ -25,10 +25,12 @@ a time (their costs still in cache), their horizontal paths, and with one band (
 the top-down paths; per column band, the top-down paths (if not done yet), then the bottom-up
 ones with each row's winner selection as soon as its sums are complete (the right view's minimum
 is gathered per band on the way); per row band, the left-right check. Diagonal paths (8 paths)
-cross column bands, so their vertical phase is one band. Compiled with ``cache=True``: the first
+cross column bands, so their vertical phase is one band. With 3 paths, per stripe of rows
+(sgm.sgm_stripes), one pass down it: costs, paths and winners row by row; then the left-right
+check. Compiled with ``cache=True``: the first
 call on a machine compiles for several seconds.
 
-The two volumes (``H W D`` int16 costs and the path sums, int16 or float32) are kept per calling
+The two volumes of 4 and 8 paths (``H W D`` int16 costs and the path sums, int16 or float32) are kept per calling
 thread and reused by the next call that fits in them, as OpenCV's SGBM keeps its buffer: faulting in
 fresh pages for them on every call costs a sizeable share of the call (docs/decisions.md).
 :func:`release_workspace` frees them.
@@ -44,6 +46,7 @@ import torch
 from ..core._jit import AVAILABLE, Workers, release_scratch, scratch, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
+from .sgm import sgm_stripes
 
 __all__ = ["AVAILABLE", "census_sgm_select", "release_workspace"]
 
@@ -349,10 +352,11 @@ if AVAILABLE:
         return j, disparity, ok, variance
 
     @_jit(noalias=True)
-    def _finish_row(c2, a2, cur, y, w, x0, x1, tsub, tadd, select, vol, jbest, disparity, ok, variance, rmin, codes,
-                    sums):
+    def _finish_row(c2, a2, cur, y, pr, w, x0, x1, tsub, tadd, select, vol, jbest, disparity, ok, variance, rmin,
+                    codes, sums):
         """Pixels ``(y, x)``, ``x`` in ``[x0, x1)``: their aggregated costs ``((a2[p] + (L[j] - tsub)) + tadd) / paths``
-        (``L``: row ``x - x0 + 1`` of ``cur``, the last path; see _run), then their selection (_select_pixel) into
+        (``L``: row ``x - x0 + 1`` of ``cur``, the last path; see _run; ``p``: pixel ``x`` of row ``pr`` of ``c2``
+        and ``a2``, which hold image row ``y`` there), then their selection (_select_pixel) into
         ``jbest``, ``disparity``, ``ok``, ``variance``.
 
         The sum is sgm_aggregate's in float32 (``a2`` then holds float32 path costs, the tables zeros) or, for
@@ -368,7 +372,7 @@ if AVAILABLE:
         scale = np.float32(1.0 / paths)  # exact: paths is a power of two, so this is the division by it
         for i in range(x1 - x0):
             x = x0 + i
-            p = y * w + x
+            p = pr * w + x
             v = min(max(max_d - 1 - x, 0), num)
             # the aggregated cost, then _encode: clamp_min(0) and the index in the low mantissa bits; the min of
             # the codes is the winner
@@ -381,7 +385,7 @@ if AVAILABLE:
                 lo = _min(lo, code)
             if store:
                 for j in range(num):
-                    vol[p, j] = sums[j]
+                    vol[y * w + x, j] = sums[j]
             if lr_check:  # the right view's running minimum: right pixel xr = x - d sees candidate j
                 first = np.uint64(x + 1)  # an unsigned index: no wraparound check, which keeps LLVM from vectorising
                 for j in range(num):
@@ -432,11 +436,12 @@ if AVAILABLE:
             _census(padded, 7, out)
 
     @_jit(noalias=True)
-    def _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2):
-        """Row ``y`` of the box sums (block ``2r+1``) of the census Hamming distances into ``c2`` ``(H * W, D)``
-        (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added where they are
-        read, see _run), as cost.strip_volume, sliding the window of ``ring`` (raw rows ``y - r .. y + r``) and
-        ``colsum`` (their sum: uint8 where it fits, else int16) from row ``y - 1`` (filled anew at ``y == y0``)."""
+    def _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2, out_row):
+        """Row ``y`` of the box sums (block ``2r+1``) of the census Hamming distances into row ``out_row`` of ``c2``
+        ``(rows * W, D)`` (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added
+        where they are read, see _run), as cost.strip_volume, sliding the window of ``ring`` (raw rows
+        ``y - r .. y + r``) and ``colsum`` (their sum: uint8 where it fits, else int16) from row ``y - 1`` (filled
+        anew at ``y == y0``)."""
         _, h, w = cl.shape
         k = 2 * r + 1
         num = c2.shape[1]
@@ -453,7 +458,7 @@ if AVAILABLE:
             for j in range(num):
                 box[j] = _add(box[j], _like(colsum[i, j], box[j]))
         for x in range(w):
-            p = y * w + x
+            p = out_row * w + x
             for j in range(num):
                 b = _add(box[j], _like(colsum[x + k - 1, j], box[j]))
                 c2[p, j] = b
@@ -483,7 +488,7 @@ if AVAILABLE:
         for yb in range(y0, y1, band):
             n = min(band, y1 - yb)
             for y in range(yb, yb + n):
-                _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2)
+                _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2, y)
             _horizontal_band(c2, a2, yb, n, w, cols, cmins, tbig, tsub, p1, p2, max_d)
             if shifts > 0:
                 for y in range(yb, yb + n):
@@ -513,8 +518,51 @@ if AVAILABLE:
                 y = t if direction == 0 else h - 1 - t
                 _vertical_row(c2, a2, y, w, x0, x1, rows, mins, t & 1, tbig, tsub, p1, p2, max_d, direction == 1)
                 if direction == 1:
-                    _finish_row(c2, a2, rows[shifts - 1, 1 - (t & 1)], y, w, x0, x1, tsub, tadd, select, vol, jbest,
+                    _finish_row(c2, a2, rows[shifts - 1, 1 - (t & 1)], y, y, w, x0, x1, tsub, tadd, select, vol, jbest,
                                 disparity, ok, variance, rmin, codes, sums)
+
+    @_jit
+    def _stripe_pass(cl, cr, planes, r, y0, y1, ys, band, num, p1, p2, pad, tbig, tsub, tadd, cost_like, acc_like,
+                     colsum_like, select, vol, jbest, disparity, ok, variance, rmin):
+        """3 paths: rows ``[y0, y1)`` of one stripe (sgm.sgm_stripes) in one pass down it, each row's costs, paths
+        and winner while the row is in cache: ``band`` rows at a time the census costs (_cost_row) and their
+        horizontal paths (_horizontal_band), then row by row the top-down path and the selection (_finish_row, which
+        adds the path to the sums), in buffers of ``band`` rows (dtypes of ``cost_like``, ``acc_like``): no volume.
+        The top-down path starts at row ``ys <= y0``: the rows ``[ys, y0)`` (the stripe above's) get only their
+        costs and that path. ``rmin`` ``(H, max_d + W)``: the right view's minimum, this stripe's rows."""
+        _, h, w = cl.shape
+        max_d = select[2]
+        k = 2 * r + 1
+        wp = w + 2 * r
+        ring = np.empty((k, wp, num), dtype=np.uint8)
+        rpad = np.empty((planes, wp + max_d + 1), dtype=np.uint8)
+        colsum = np.empty((wp, num), dtype=colsum_like.dtype)
+        box = np.empty(num, dtype=cost_like.dtype)
+        c2 = np.empty((band * w, num), dtype=cost_like.dtype)
+        a2 = np.empty((band * w, num), dtype=acc_like.dtype)
+        cols = _path_rows(2 * (band + 2), num, pad, acc_like).reshape(2, band + 2, num + 2)
+        cmins = np.zeros((2, band + 2), dtype=acc_like.dtype)
+        rows = _path_rows(2 * (w + 2), num, pad, acc_like).reshape(1, 2, w + 2, num + 2)
+        mins = np.zeros((1, 2, w + 2), dtype=acc_like.dtype)
+        codes = np.empty(num, dtype=np.int32)
+        sums = np.empty(num, dtype=np.float32)
+        if select[10]:  # lr_check
+            rmin[y0:y1] = np.int32(0x7FFFFFFF)
+        t = 0
+        for y in range(ys, y0):
+            _cost_row(cl, cr, y, ys, r, max_d, planes, ring, rpad, colsum, box, c2, 0)
+            _vertical_row(c2, a2, 0, w, 0, w, rows, mins, t & 1, tbig, tsub, p1, p2, max_d, True)
+            t += 1
+        for yb in range(y0, y1, band):
+            n = min(band, y1 - yb)
+            for y in range(yb, yb + n):
+                _cost_row(cl, cr, y, ys, r, max_d, planes, ring, rpad, colsum, box, c2, y - yb)
+            _horizontal_band(c2, a2, 0, n, w, cols, cmins, tbig, tsub, p1, p2, max_d)
+            for y in range(yb, yb + n):
+                _vertical_row(c2, a2, y - yb, w, 0, w, rows, mins, t & 1, tbig, tsub, p1, p2, max_d, True)
+                _finish_row(c2, a2, rows[0, 1 - (t & 1)], y, y - yb, w, 0, w, tsub, tadd, select, vol, jbest,
+                            disparity, ok, variance, rmin, codes, sums)
+                t += 1
 
     @_jit(noalias=True)
     def _lr_check_rows(rmins, jbest, ok, max_d, bits, lr_threshold, y0, y1):
@@ -589,14 +637,15 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
 
     Equal to ``_select(sgm_aggregate(strip_volume(...)))`` of :mod:`egorefine.stereo.matching` (the torch
     path), bit for bit. Memory: one int16 cost volume and one int16 or float32 volume of path sums (4 or 6 bytes
-    per candidate; int16 with integer penalties, see _path_arithmetic).
+    per candidate; int16 with integer penalties, see _path_arithmetic); with 3 paths, buffers of a few rows per
+    stripe instead.
 
     Args:
         grey_l, grey_r: ``(B, 1, H, W)`` float32 CPU grey images.
         max_disparity, min_disparity, block_size, census_window: as :func:`egorefine.stereo.match_stereo`
             (``max_disparity - min_disparity >= 2``).
         p1, p2: SGM penalties in window-*sum* units (``block_size**2`` times the mean-cost penalties).
-        paths: 4 or 8.
+        paths: 3, 4 or 8.
         opts: the selection options of ``matching._select`` (its hard winner; no soft-argmin).
         threads: worker threads (None: ``torch.get_num_threads()``).
         return_volume: also return the aggregated volume ``(B, D, H, W)`` (reversed disparity order,
@@ -636,26 +685,33 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     row_bands = _bands(h, threads)
     # one row band: its pass also runs the top-down paths (row by row, the costs still in cache)
     fused = len(row_bands) == 1
-    # vertical paths are independent per column; diagonal ones cross columns: one band
+    # vertical paths are independent per column; diagonal ones cross columns: one band (3 paths: no vertical phase)
     col_bands = _bands(w, threads) if paths == 4 else [(0, w)]
+    stripes = sgm_stripes(h)
     volumes = []
 
     def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
         census = np.empty((2, planes, h, w), dtype=np.uint8)
         run(lambda k: _census_of((left, right)[k][i, 0], census_window, census[k]), (0, 1))
-        cost = scratch("sgm.cost", (h, w, num), cost_dtype)  # (a call with fewer candidates reuses them)
-        acc = scratch("sgm.sums", (h, w, num), path_dtype)
         # a volume returned to the caller stays its own (each batch item's is kept until the end)
         vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)
         rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
         band = BAND_ROWS
-        run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], band, f1, f2,
-                                    path_pad, *tables[:2], cost, acc, colsum_like, shifts if fused else 0,
-                                    max_disparity), row_bands)
-        run(lambda k: _vertical_select(cost, acc, col_bands[k][0], col_bands[k][1], shifts, not fused, f1, f2,
-                                       path_pad, *tables, select, vol, jbest, disparity[i], valid[i], variance[i],
-                                       rmins[k]), range(len(col_bands)))
+        if paths == 3:  # one pass down each stripe: costs, paths and winners in row buffers, no volume
+            run(lambda st: _stripe_pass(census[0], census[1], planes, block_size // 2, st[0], st[1], st[2], band, num,
+                                        f1, f2, path_pad, *tables, np.empty(0, cost_dtype), np.empty(0, path_dtype),
+                                        colsum_like, select, vol, jbest, disparity[i], valid[i], variance[i],
+                                        rmins[0]), stripes)
+        else:
+            cost = scratch("sgm.cost", (h, w, num), cost_dtype)  # (a call with fewer candidates reuses them)
+            acc = scratch("sgm.sums", (h, w, num), path_dtype)
+            run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], band, f1,
+                                        f2, path_pad, *tables[:2], cost, acc, colsum_like, shifts if fused else 0,
+                                        max_disparity), row_bands)
+            run(lambda k: _vertical_select(cost, acc, col_bands[k][0], col_bands[k][1], shifts, not fused, f1, f2,
+                                           path_pad, *tables, select, vol, jbest, disparity[i], valid[i],
+                                           variance[i], rmins[k]), range(len(col_bands)))
         if return_volume:
             volumes.append(torch.from_numpy(vol.reshape(h, w, num)).permute(2, 0, 1))
         if opts["lr_check"]:

@@ -140,6 +140,8 @@ def match_sgm_band(
     """
     _check_inputs(left, right, max_disparity, min_disparity, block_size, "census", "sgm", subpixel_fit, sgm_paths,
                   None, False, None, census_window, speckle_size, speckle_range, None, sgm_p1, sgm_p2)
+    if sgm_paths not in (4, 8):
+        raise ValueRangeError(f"sgm_paths: the band matcher takes 4 or 8, got {sgm_paths}")
     check_shape(prior, ["B", "1", "H", "W"], "prior", check_shape(left, ["B", "1|3", "H", "W"], "left"))
     check_float(prior, "prior")
     check_same_device(left, "left", prior=prior)

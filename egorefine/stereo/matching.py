@@ -36,7 +36,7 @@ from ..core.dispatch import needs_grad
 from . import _fill_numba, _sad_numba, _sgm_numba, _texture_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
-from .sgm import sgm_aggregate
+from .sgm import SGM_PATHS, sgm_aggregate
 from .speckle import clear_invalid_, remove_speckles
 
 __all__ = ["StereoOutput", "block_matching", "match_stereo", "fill_invalid", "BlockMatching", "INVALID_VARIANCE"]
@@ -112,8 +112,8 @@ def _check_inputs(left: torch.Tensor, right: torch.Tensor, max_disparity: int, m
     check_choice(subpixel_fit, SUBPIXEL_FITS, "subpixel_fit")
     if census_window not in (3, 5, 7):
         raise ValueRangeError(f"census_window: expected 3, 5 or 7, got {census_window!r}")
-    if sgm_paths not in (4, 8):
-        raise ValueRangeError(f"sgm_paths: expected 4 or 8, got {sgm_paths}")
+    if sgm_paths not in SGM_PATHS:
+        raise ValueRangeError(f"sgm_paths: expected one of {SGM_PATHS}, got {sgm_paths}")
     if differentiable and cost == "census":
         raise ValueRangeError("cost: 'census' has no gradient; use 'sad' or 'zncc' with differentiable=True")
     if soft_radius is not None and (isinstance(soft_radius, bool) or not isinstance(soft_radius, int)
@@ -332,7 +332,8 @@ def match_stereo(
             units (window means; census: mean Hamming distance), ``0 <= sgm_p1 <= sgm_p2``. None: per-cost
             defaults; census's are 2/3 and 8/3 times the number of census bits (``census_window**2 - 1``), strong
             smoothing, which noisy and weakly textured surfaces need for their winners to pass the checks.
-        sgm_paths: 4 or 8 scanline directions.
+        sgm_paths: 4 (default) or 8 scanline directions, or 3 (OpenCV SGBM 3-way's: horizontal and top-down;
+            faster, less accurate).
         census_max_distance: census + SGM only: reject a winner whose own window-mean Hamming distance (before
             aggregation) exceeds this share of the census bits, in [0, 1]; unrelated windows score about 0.5. Strong
             smoothing can carry a winner across windows that match nothing (noise, or a surface seen by one camera

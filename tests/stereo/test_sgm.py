@@ -5,8 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from egorefine.core import _jit
+from egorefine.core import ValueRangeError, _jit
 from egorefine.stereo import _sgm_numba, match_stereo, sgm_aggregate
+from egorefine.stereo.band import match_sgm_band
+from egorefine.stereo.sgm import sgm_stripes
 
 from ._synthetic import planar_pair
 
@@ -44,6 +46,27 @@ def test_sgm_matches_naive_reference():
     assert torch.allclose(sgm_aggregate(vol, p1, p2, 8), ref8)
 
 
+def test_three_paths_are_horizontal_and_top_down_per_stripe():
+    """3 paths: left-right, right-left and top-down, the top-down one restarted above each stripe of rows
+    (sgm_stripes), each row's sum divided by 3; one stripe below 240 rows, two at 250."""
+    gen = torch.Generator().manual_seed(4)
+    p1, p2 = 0.1, 0.4
+    small = torch.rand(1, 4, 9, 7, generator=gen, dtype=torch.float64)
+    ref = sum(_naive_path(small, p1, p2, dy, dx) for dy, dx in [(0, 1), (0, -1), (1, 0)]) / 3
+    assert torch.allclose(sgm_aggregate(small, p1, p2, 3), ref)
+    tall = torch.rand(1, 3, 250, 4, generator=gen, dtype=torch.float64)
+    stripes = sgm_stripes(250)
+    assert [(a, b) for a, b, _ in stripes] == [(0, 125), (125, 250)] and stripes[1][2] < 125
+    top_down = torch.cat([_naive_path(tall[:, :, start:stop], p1, p2, 1, 0)[:, :, y0 - start:]
+                          for y0, stop, start in stripes], dim=2)
+    ref = (_naive_path(tall, p1, p2, 0, 1) + _naive_path(tall, p1, p2, 0, -1) + top_down) / 3
+    out = sgm_aggregate(tall, p1, p2, 3)
+    assert torch.allclose(out, ref)
+    # the restart matters (a path through the whole height differs in the second stripe), if only a little
+    whole = (_naive_path(tall, p1, p2, 0, 1) + _naive_path(tall, p1, p2, 0, -1) + _naive_path(tall, p1, p2, 1, 0)) / 3
+    assert torch.allclose(out[:, :, :125], whole[:, :, :125]) and not torch.equal(out, whole)
+
+
 def test_sgm_smooths_a_noisy_winner():
     # a constant true disparity with one outlier column of costs: SGM restores the winner there
     vol = torch.ones(1, 6, 8, 8)
@@ -58,6 +81,8 @@ def test_sgm_gradcheck():
     gen = torch.Generator().manual_seed(1)
     vol = torch.rand(1, 4, 4, 5, generator=gen, dtype=torch.float64).requires_grad_()
     assert torch.autograd.gradcheck(lambda v: sgm_aggregate(v, 0.05, 0.3, 8), (vol,), fast_mode=True)
+    tall = torch.rand(1, 2, 245, 2, generator=gen, dtype=torch.float64).requires_grad_()  # two stripes
+    assert torch.autograd.gradcheck(lambda v: sgm_aggregate(v, 0.05, 0.3, 3), (tall,), fast_mode=True)
 
 
 # --- the compiled CPU path (egorefine.stereo._sgm_numba) against the torch path ---------------------------------
@@ -109,6 +134,32 @@ def test_numba_equals_torch_path(max_d, min_d, block, window, p1, p2, paths, fit
     assert torch.equal(vol, ref_vol)
     assert torch.equal(d, ref_d) and torch.equal(v, ref_v) and torch.equal(var, ref_var)
     assert 0.3 < v.float().mean() < 1.0  # the checks pass some pixels and reject others
+
+
+@needs_numba
+@pytest.mark.parametrize(("p1", "p2", "threads"), [(96.0, 384.0, 2), (96.0, 384.0, 1), (0.37, 2.1, 3)])
+def test_numba_three_paths_equal_torch_path_across_stripes(p1, p2, threads):
+    """The 3-path pass down each stripe (int16 and float32 path costs) against the torch path, at a height of three
+    stripes; its volume (returned for this test) too."""
+    left, right = _random_pair(1, 370, 40, seed=11)
+    opts = {**_OPTS, "scale": 9.0, "min_disparity": 0, "max_raw_cost": None}
+    assert len(sgm_stripes(370)) == 3
+    ref_vol, ref_d, ref_v, ref_var = _torch_reference(left, right, 12, 0, 3, 5, p1, p2, 3, opts)
+    d, v, var, vol = _sgm_numba.census_sgm_select(left, right, 12, 0, 3, 5, p1, p2, 3, opts, threads=threads,
+                                                  return_volume=True)
+    assert torch.equal(vol, ref_vol)
+    assert torch.equal(d, ref_d) and torch.equal(v, ref_v) and torch.equal(var, ref_var)
+    assert 0.3 < v.float().mean() < 1.0
+
+
+def test_sgm_paths_choices():
+    left, right = _random_pair(1, 20, 30, seed=2)
+    with pytest.raises(ValueRangeError, match="sgm_paths"):
+        match_stereo(left, right, 8, cost="census", aggregation="sgm", sgm_paths=5)
+    out = match_stereo(left, right, 8, cost="census", aggregation="sgm", sgm_paths=3)
+    assert out.disparity.shape == (1, 1, 20, 30) and bool(out.valid.any())
+    with pytest.raises(ValueRangeError, match="band matcher"):
+        match_sgm_band(left, right, torch.full((1, 1, 20, 30), 3.0), 8, width=4, sgm_paths=3)
 
 
 @needs_numba
