@@ -465,6 +465,19 @@ if AVAILABLE:
                 box[j] = _sub(b, _like(colsum[x, j], box[j]))
 
     @_jit
+    def _row_scratch(w, r, num, planes, max_d, band, pad, colsum_like, cost_like, acc_like):
+        """The scratch of a pass that computes cost rows (_cost_row: its ring of raw rows, padded right row, column
+        sums and box) and horizontal paths of ``band`` rows (_horizontal_band: their path columns and minima)."""
+        wp = w + 2 * r
+        ring = np.empty((2 * r + 1, wp, num), dtype=np.uint8)
+        rpad = np.empty((planes, wp + max_d + 1), dtype=np.uint8)
+        colsum = np.empty((wp, num), dtype=colsum_like.dtype)
+        box = np.empty(num, dtype=cost_like.dtype)
+        cols = _path_rows(2 * (band + 2), num, pad, acc_like).reshape(2, band + 2, num + 2)
+        cmins = np.zeros((2, band + 2), dtype=acc_like.dtype)
+        return ring, rpad, colsum, box, cols, cmins
+
+    @_jit
     def _rows_pass(cl, cr, planes, r, y0, y1, band, p1, p2, pad, tbig, tsub, cost, acc, colsum_like, shifts,
                    max_d):
         """Rows ``[y0, y1)``: the census costs (_cost_row; ``colsum_like``: the dtype of its column sums) into ``cost``
@@ -473,16 +486,10 @@ if AVAILABLE:
         rows are the whole image) also the top-down ones of that many column shifts (_vertical_row)."""
         _, h, w = cl.shape
         num = cost.shape[2]
-        k = 2 * r + 1
-        wp = w + 2 * r
-        ring = np.empty((k, wp, num), dtype=np.uint8)
-        rpad = np.empty((planes, wp + max_d + 1), dtype=np.uint8)
-        colsum = np.empty((wp, num), dtype=colsum_like.dtype)
-        box = np.empty(num, dtype=cost.dtype)
+        ring, rpad, colsum, box, cols, cmins = _row_scratch(w, r, num, planes, max_d, band, pad, colsum_like, cost,
+                                                            acc)
         c2 = cost.reshape(h * w, num)
         a2 = acc.reshape(h * w, num)
-        cols = _path_rows(2 * (band + 2), num, pad, acc).reshape(2, band + 2, num + 2)
-        cmins = np.zeros((2, band + 2), dtype=acc.dtype)
         rows = _path_rows(max(shifts, 1) * 2 * (w + 2), num, pad, acc).reshape(max(shifts, 1), 2, w + 2, num + 2)
         mins = np.zeros((max(shifts, 1), 2, w + 2), dtype=acc.dtype)
         for yb in range(y0, y1, band):
@@ -532,16 +539,10 @@ if AVAILABLE:
         costs and that path. ``rmin`` ``(H, max_d + W)``: the right view's minimum, this stripe's rows."""
         _, h, w = cl.shape
         max_d = select[2]
-        k = 2 * r + 1
-        wp = w + 2 * r
-        ring = np.empty((k, wp, num), dtype=np.uint8)
-        rpad = np.empty((planes, wp + max_d + 1), dtype=np.uint8)
-        colsum = np.empty((wp, num), dtype=colsum_like.dtype)
-        box = np.empty(num, dtype=cost_like.dtype)
+        ring, rpad, colsum, box, cols, cmins = _row_scratch(w, r, num, planes, max_d, band, pad, colsum_like,
+                                                            cost_like, acc_like)
         c2 = np.empty((band * w, num), dtype=cost_like.dtype)
         a2 = np.empty((band * w, num), dtype=acc_like.dtype)
-        cols = _path_rows(2 * (band + 2), num, pad, acc_like).reshape(2, band + 2, num + 2)
-        cmins = np.zeros((2, band + 2), dtype=acc_like.dtype)
         rows = _path_rows(2 * (w + 2), num, pad, acc_like).reshape(1, 2, w + 2, num + 2)
         mins = np.zeros((1, 2, w + 2), dtype=acc_like.dtype)
         codes = np.empty(num, dtype=np.int32)
