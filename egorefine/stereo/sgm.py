@@ -18,7 +18,7 @@ __all__ = ["SGM_PATHS", "sgm_aggregate", "sgm_stripes"]
 #: the path counts :func:`sgm_aggregate` (and ``match_stereo(sgm_paths=...)``) take
 SGM_PATHS = (3, 4, 8)
 
-# 3 paths: rows per stripe (at least) and the rows above a stripe over which its top-down path starts (see sgm_stripes)
+# 3 paths: rows per stripe (about) and the rows above a stripe over which its top-down path starts (see sgm_stripes)
 _STRIPE_ROWS = 120
 _STRIPE_WARMUP = 24
 
@@ -31,7 +31,8 @@ def sgm_stripes(height: int) -> list[tuple[int, int, int]]:
     Each stripe's top-down path starts ``_STRIPE_WARMUP`` rows above it (``path_start``; 0 for the first) rather
     than at the image's top, so it has left its start behind by the stripe's first row: after a few dozen steps a
     path's costs forget where it started. The stripes depend on the height alone, so the results do not depend on
-    the number of threads.
+    the number of threads: an even number of stripes of about 120 rows (one up to 120 rows), so that two threads,
+    or four, share them evenly.
 
     Example:
         >>> sgm_stripes(480)
@@ -39,7 +40,7 @@ def sgm_stripes(height: int) -> list[tuple[int, int, int]]:
         >>> sgm_stripes(100)
         [(0, 100, 0)]
     """
-    count = max(1, height // _STRIPE_ROWS)
+    count = max(1, 2 * round(height / (2 * _STRIPE_ROWS)))
     edges = [round(i * height / count) for i in range(count + 1)]
     return [(a, b, max(0, a - _STRIPE_WARMUP)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 

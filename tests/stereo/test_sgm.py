@@ -139,11 +139,11 @@ def test_numba_equals_torch_path(max_d, min_d, block, window, p1, p2, paths, fit
 @needs_numba
 @pytest.mark.parametrize(("p1", "p2", "threads"), [(96.0, 384.0, 2), (96.0, 384.0, 1), (0.37, 2.1, 3)])
 def test_numba_three_paths_equal_torch_path_across_stripes(p1, p2, threads):
-    """The 3-path pass down each stripe (int16 and float32 path costs) against the torch path, at a height of three
+    """The 3-path pass down each stripe (int16 and float32 path costs) against the torch path, at a height of four
     stripes; its volume (returned for this test) too."""
     left, right = _random_pair(1, 370, 40, seed=11)
     opts = {**_OPTS, "scale": 9.0, "min_disparity": 0, "max_raw_cost": None}
-    assert len(sgm_stripes(370)) == 3
+    assert len(sgm_stripes(370)) == 4
     ref_vol, ref_d, ref_v, ref_var = _torch_reference(left, right, 12, 0, 3, 5, p1, p2, 3, opts)
     d, v, var, vol = _sgm_numba.census_sgm_select(left, right, 12, 0, 3, 5, p1, p2, 3, opts, threads=threads,
                                                   return_volume=True)
