@@ -26,8 +26,8 @@ the top-down paths; per column band, the top-down paths (if not done yet), then 
 ones with each row's winner selection as soon as its sums are complete (the right view's minimum
 is gathered per band on the way); per row band, the left-right check. Diagonal paths (8 paths)
 cross column bands, so their vertical phase is one band. With 3 paths, per stripe of rows
-(sgm.sgm_stripes), one pass down it: costs, paths and winners row by row; then the left-right
-check. Compiled with ``cache=True``: the first
+(sgm.sgm_stripes), one pass down it: the census of its rows, then costs, paths and winners row by
+row; then the left-right check. Compiled with ``cache=True``: the first
 call on a machine compiles for several seconds.
 
 The two volumes of 4 and 8 paths (``H W D`` int16 costs and the path sums, int16 or float32) are kept per calling
@@ -425,9 +425,9 @@ if AVAILABLE:
         return out
 
     @_jit
-    def _census_of(image, window, out):
-        """_census of ``image`` ``(H, W)`` (padded here) with ``window`` (3, 5 or 7) as the literal it takes."""
-        padded = _edge_padded(image, window // 2)
+    def _census_of_padded(padded, window, out):
+        """_census of an image padded by ``window // 2``, with ``window`` (3, 5 or 7) as the literal it takes: the
+        census rows of ``padded``'s rows ``window // 2 ..`` (as many as ``out`` has)."""
         if window == 3:
             _census(padded, 3, out)
         elif window == 5:
@@ -435,24 +435,30 @@ if AVAILABLE:
         else:
             _census(padded, 7, out)
 
+    @_jit
+    def _census_of(image, window, out):
+        """_census of ``image`` ``(H, W)`` (padded here) with ``window`` (3, 5 or 7) as the literal it takes."""
+        _census_of_padded(_edge_padded(image, window // 2), window, out)
+
     @_jit(noalias=True)
-    def _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2, out_row):
+    def _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2, out_row, row0, h):
         """Row ``y`` of the box sums (block ``2r+1``) of the census Hamming distances into row ``out_row`` of ``c2``
         ``(rows * W, D)`` (int16, or int32 for large blocks; the INVALID_COST of out-of-view candidates is added
         where they are read, see _run), as cost.strip_volume, sliding the window of ``ring`` (raw rows
         ``y - r .. y + r``) and ``colsum`` (their sum: uint8 where it fits, else int16) from row ``y - 1`` (filled
-        anew at ``y == y0``)."""
-        _, h, w = cl.shape
+        anew at ``y == y0``). ``cl``, ``cr`` hold the census rows from image row ``row0`` on; ``h``: the image's
+        height (rows beyond it are clamped)."""
+        w = cl.shape[2]
         k = 2 * r + 1
         num = c2.shape[1]
         if y == y0:
             colsum[:] = 0
             for i in range(k):  # rows y0 - r .. y0 + r (clamped)
                 yy = min(max(y0 - r + i, 0), h - 1)
-                _raw_row_of(cl, cr, yy, r, max_d, planes, rpad, ring, i, colsum, np.uint8(0))
+                _raw_row_of(cl, cr, yy - row0, r, max_d, planes, rpad, ring, i, colsum, np.uint8(0))
         else:  # slide the window: drop row y - r - 1 (ring slot (y - y0 - 1) % k), add row y + r
-            _raw_row_of(cl, cr, min(max(y + r, 0), h - 1), r, max_d, planes, rpad, ring, (y - y0 - 1) % k, colsum,
-                        np.uint8(0xFF))
+            _raw_row_of(cl, cr, min(max(y + r, 0), h - 1) - row0, r, max_d, planes, rpad, ring, (y - y0 - 1) % k,
+                        colsum, np.uint8(0xFF))
         box[:] = 0
         for i in range(k - 1):
             for j in range(num):
@@ -495,7 +501,7 @@ if AVAILABLE:
         for yb in range(y0, y1, band):
             n = min(band, y1 - yb)
             for y in range(yb, yb + n):
-                _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2, y)
+                _cost_row(cl, cr, y, y0, r, max_d, planes, ring, rpad, colsum, box, c2, y, 0, h)
             _horizontal_band(c2, a2, yb, n, w, cols, cmins, tbig, tsub, p1, p2, max_d)
             if shifts > 0:
                 for y in range(yb, yb + n):
@@ -529,16 +535,24 @@ if AVAILABLE:
                                 disparity, ok, variance, rmin, codes, sums)
 
     @_jit
-    def _stripe_pass(cl, cr, planes, r, y0, y1, ys, band, num, p1, p2, pad, tbig, tsub, tadd, cost_like, acc_like,
-                     colsum_like, select, vol, jbest, disparity, ok, variance, rmin):
+    def _stripe_pass(pl, pr_, window, planes, r, y0, y1, ys, band, num, p1, p2, pad, tbig, tsub, tadd, cost_like,
+                     acc_like, colsum_like, select, vol, jbest, disparity, ok, variance, rmin):
         """3 paths: rows ``[y0, y1)`` of one stripe (sgm.sgm_stripes) in one pass down it, each row's costs, paths
-        and winner while the row is in cache: ``band`` rows at a time the census costs (_cost_row) and their
+        and winner while the row is in cache, from the census of the rows it reads (of ``pl``, ``pr_``: the images
+        padded by ``window // 2``): ``band`` rows at a time the census costs (_cost_row) and their
         horizontal paths (_horizontal_band), then row by row the top-down path and the selection (_finish_row, which
         adds the path to the sums), in buffers of ``band`` rows (dtypes of ``cost_like``, ``acc_like``): no volume.
         The top-down path starts at row ``ys <= y0``: the rows ``[ys, y0)`` (the stripe above's) get only their
         costs and that path. ``rmin`` ``(H, max_d + W)``: the right view's minimum, this stripe's rows."""
-        _, h, w = cl.shape
+        rc = window // 2
+        h, w = pl.shape[0] - 2 * rc, pl.shape[1] - 2 * rc
         max_d = select[2]
+        # the census of the rows the stripe's cost rows read (its own, its path's start, the block's reach)
+        lo, hi = max(ys - r, 0), min(y1 + r, h)
+        cl = np.empty((planes, hi - lo, w), np.uint8)
+        cr = np.empty((planes, hi - lo, w), np.uint8)
+        _census_of_padded(pl[lo : hi + 2 * rc], window, cl)
+        _census_of_padded(pr_[lo : hi + 2 * rc], window, cr)
         ring, rpad, colsum, box, cols, cmins = _row_scratch(w, r, num, planes, max_d, band, pad, colsum_like,
                                                             cost_like, acc_like)
         c2 = np.empty((band * w, num), dtype=cost_like.dtype)
@@ -551,13 +565,13 @@ if AVAILABLE:
             rmin[y0:y1] = np.int32(0x7FFFFFFF)
         t = 0
         for y in range(ys, y0):
-            _cost_row(cl, cr, y, ys, r, max_d, planes, ring, rpad, colsum, box, c2, 0)
+            _cost_row(cl, cr, y, ys, r, max_d, planes, ring, rpad, colsum, box, c2, 0, lo, h)
             _vertical_row(c2, a2, 0, w, 0, w, rows, mins, t & 1, tbig, tsub, p1, p2, max_d, True)
             t += 1
         for yb in range(y0, y1, band):
             n = min(band, y1 - yb)
             for y in range(yb, yb + n):
-                _cost_row(cl, cr, y, ys, r, max_d, planes, ring, rpad, colsum, box, c2, y - yb)
+                _cost_row(cl, cr, y, ys, r, max_d, planes, ring, rpad, colsum, box, c2, y - yb, lo, h)
             _horizontal_band(c2, a2, 0, n, w, cols, cmins, tbig, tsub, p1, p2, max_d)
             for y in range(yb, yb + n):
                 _vertical_row(c2, a2, y - yb, w, 0, w, rows, mins, t & 1, tbig, tsub, p1, p2, max_d, True)
@@ -692,19 +706,20 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     volumes = []
 
     def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
-        census = np.empty((2, planes, h, w), dtype=np.uint8)
-        run(lambda k: _census_of((left, right)[k][i, 0], census_window, census[k]), (0, 1))
         # a volume returned to the caller stays its own (each batch item's is kept until the end)
         vol = np.empty((h * w, num) if return_volume else (1, num), np.float32)
         jbest = np.empty((h, w), dtype=np.int32)
         rmins = np.empty((len(col_bands), h, max_disparity + w), dtype=np.int32)
         band = BAND_ROWS
-        if paths == 3:  # one pass down each stripe: costs, paths and winners in row buffers, no volume
-            run(lambda st: _stripe_pass(census[0], census[1], planes, block_size // 2, st[0], st[1], st[2], band, num,
-                                        f1, f2, path_pad, *tables, np.empty(0, cost_dtype), np.empty(0, path_dtype),
-                                        colsum_like, select, vol, jbest, disparity[i], valid[i], variance[i],
-                                        rmins[0]), stripes)
+        if paths == 3:  # one pass down each stripe: its census, costs, paths and winners in row buffers, no volume
+            padded = [_edge_padded(img[i, 0], census_window // 2) for img in (left, right)]
+            run(lambda st: _stripe_pass(*padded, census_window, planes, block_size // 2, st[0], st[1], st[2], band,
+                                        num, f1, f2, path_pad, *tables, np.empty(0, cost_dtype),
+                                        np.empty(0, path_dtype), colsum_like, select, vol, jbest, disparity[i],
+                                        valid[i], variance[i], rmins[0]), stripes)
         else:
+            census = np.empty((2, planes, h, w), dtype=np.uint8)
+            run(lambda k: _census_of((left, right)[k][i, 0], census_window, census[k]), (0, 1))
             cost = scratch("sgm.cost", (h, w, num), cost_dtype)  # (a call with fewer candidates reuses them)
             acc = scratch("sgm.sums", (h, w, num), path_dtype)
             run(lambda rows: _rows_pass(census[0], census[1], planes, block_size // 2, rows[0], rows[1], band, f1,
