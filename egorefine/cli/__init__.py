@@ -257,8 +257,8 @@ def _build_parser() -> argparse.ArgumentParser:
                           "npy (NaN = invalid) or PFM (+inf = invalid)")
     run.add_argument("--png", default="fast", choices=sorted(PNG_ENCODINGS),
                      help="PNG encoding of the disparity, confidence and preview files: fast (stored, not deflated: "
-                          "larger files, several times cheaper to write) or small (OpenCV's deflate); the pixels are "
-                          "the same")
+                          "larger files, several times cheaper to write) or small (filtered and deflated: smaller, "
+                          "slower); the pixels are the same")
     run.add_argument("--outputs", type=parse_outputs, default=",".join(_FRAME_DIRS), metavar="NAME[,NAME...]",
                      help="per-frame files to write, comma-separated: disparity, valid, confidence, preview; 'none' "
                           "writes only the trajectory and run.json")
