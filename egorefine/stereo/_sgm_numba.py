@@ -354,9 +354,10 @@ if AVAILABLE:
     @_jit(noalias=True)
     def _finish_row(c2, a2, cur, y, pr, w, x0, x1, tsub, tadd, select, vol, jbest, disparity, ok, variance, rmin,
                     codes, sums):
-        """Pixels ``(y, x)``, ``x`` in ``[x0, x1)``: their aggregated costs ``((a2[p] + (L[j] - tsub)) + tadd) / paths``
-        (``L``: row ``x - x0 + 1`` of ``cur``, the last path; see _run; ``p``: pixel ``x`` of row ``pr`` of ``c2``
-        and ``a2``, which hold image row ``y`` there), then their selection (_select_pixel) into
+        """Pixels ``(y, x)``, ``x`` in ``[x0, x1)``: their aggregated costs ``((a2[p] + (L[j] - tsub)) + tadd) * s``
+        (``s``: the float32 ``1 / paths``; ``L``: row ``x - x0 + 1`` of ``cur``, the last path, see _run; ``p``:
+        pixel ``x`` of row ``pr`` of ``c2`` and ``a2``, which hold image row ``y`` there), then their selection
+        (_select_pixel) into
         ``jbest``, ``disparity``, ``ok``, ``variance``.
 
         The sum is sgm_aggregate's in float32 (``a2`` then holds float32 path costs, the tables zeros) or, for
@@ -369,7 +370,7 @@ if AVAILABLE:
         paths, store, max_d, bits, subpixel, parabola, uniqueness, floor, eps, positive, lr_check, max_raw = select
         num = codes.shape[0]
         high = np.int32(-(1 << bits))
-        scale = np.float32(1.0 / paths)  # exact: paths is a power of two, so this is the division by it
+        scale = np.float32(1.0 / paths)  # sgm_aggregate's multiply (for 4 and 8 paths the division's bits)
         for i in range(x1 - x0):
             x = x0 + i
             p = pr * w + x
