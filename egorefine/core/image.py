@@ -17,13 +17,13 @@ _LUMA = (0.299, 0.587, 0.114)
 def to_grey(image: torch.Tensor) -> torch.Tensor:
     """Grey version of an image batch: colour through kornia's luma weights (``rgb_to_grayscale``), grey passed through.
 
-    Args:
-        image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image.
-
     On the CPU, without autograd, kornia's three operations run on pieces of rows, each small enough that torch
     keeps it on the calling thread: an operation over a whole image wakes torch's OpenMP threads, which then spin
-    on the other cores for a while, beside the compiled kernels that usually come next, and slow them by several
-    milliseconds. The operations are kornia's, so the values are too.
+    on the other cores for a while, beside the compiled kernels that usually come next, and slow them
+    (docs/decisions.md). The operations are kornia's, so the values are too.
+
+    Args:
+        image: ``(B, 1, H, W)`` or ``(B, 3, H, W)`` float image.
 
     Returns:
         ``(B, 1, H, W)``; the input itself when it is grey already.

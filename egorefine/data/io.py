@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..core import ShapeError, ValueRangeError
+from ..core import ShapeError, ValueRangeError, check_choice
 
 __all__ = ["PNG_ENCODINGS", "write_png", "read_pfm", "write_pfm", "read_kitti_disparity", "write_kitti_disparity"]
 
@@ -24,17 +24,11 @@ PathLike = str | os.PathLike
 #: The PNG encodings :func:`write_png` knows. ``"fast"`` stores the rows as they are (no row filter, deflate's
 #: "stored" blocks): the file is the raw pixels plus a few bytes of framing, written at about the speed of copying
 #: them. ``"small"`` predicts each row from the one above (PNG's "up" filter) and deflates the differences with
-#: zlib's fastest setting that finds runs (level 1, run-length matches only): several times the time, files a half
-#: to a tenth of the size (16-bit maps of sensor data shrink least, masks and previews most).
+#: zlib's fastest setting that finds runs (level 1, run-length matches only): smaller files for more time (16-bit
+#: maps of sensor data shrink least, masks and previews most; docs/cli.md).
 PNG_ENCODINGS = ("fast", "small")
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def _check_png(png: str) -> str:
-    if png not in PNG_ENCODINGS:
-        raise ValueRangeError(f"png: expected one of {list(PNG_ENCODINGS)}, got {png!r}")
-    return png
 
 
 def _png_rows(image: np.ndarray, png: str) -> np.ndarray:
@@ -81,7 +75,7 @@ def write_png(path: PathLike, image: np.ndarray, png: str = "fast", palette: np.
         >>> cv2.imread(str(path)).tolist()  # OpenCV expands the colours, in its BGR order
         [[[0, 0, 255], [9, 0, 0]]]
     """
-    _check_png(png)
+    check_choice(png, PNG_ENCODINGS, "png")
     if palette is not None:
         if image.dtype != np.uint8 or image.ndim != 2:
             raise ShapeError(f"image: expected (H, W) uint8 indices with a palette, got {image.dtype} "

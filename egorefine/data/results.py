@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core import ShapeError, ValueRangeError
-from .io import _check_png, read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm, write_png
+from ..core import ShapeError, ValueRangeError, check_choice
+from .io import PNG_ENCODINGS, read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm, write_png
 
 __all__ = [
     "DISPARITY_FORMATS",
@@ -129,7 +129,7 @@ def write_disparity(
         ('.png', [[1.5, 2.0], [0.0, 3.25]], [[True, True], [False, True]])
     """
     path = Path(os.fspath(stem) + _check_format(fmt))
-    _check_png(png)
+    check_choice(png, PNG_ENCODINGS, "png")
     d = _plane(disparity, "disparity").astype(np.float32, copy=False)
     v = _plane(valid, "valid").astype(bool, copy=False)
     if v.shape != d.shape:
@@ -166,7 +166,7 @@ def write_confidence(
         ('.png', [[0, 32768], [65535, 65535]])
     """
     path = Path(os.fspath(stem) + _check_format(fmt))
-    _check_png(png)
+    check_choice(png, PNG_ENCODINGS, "png")
     c = _plane(confidence, "confidence")
     with atomic_path(path) as tmp:
         if fmt == "png16":
@@ -232,7 +232,7 @@ def write_preview(path: PathLike, image: np.ndarray, png: str = "fast", palette:
     path = Path(path)
     if palette is None and (image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8):
         raise ShapeError(f"rgb: expected an (H, W, 3) uint8 image, got {image.dtype} {tuple(image.shape)}")
-    _check_png(png)
+    check_choice(png, PNG_ENCODINGS, "png")
     with atomic_path(path) as tmp:
         write_png(tmp, image, png, palette)
     return path

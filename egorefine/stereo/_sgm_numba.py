@@ -357,8 +357,7 @@ if AVAILABLE:
         """Pixels ``(y, x)``, ``x`` in ``[x0, x1)``: their aggregated costs ``((a2[p] + (L[j] - tsub)) + tadd) * s``
         (``s``: the float32 ``1 / paths``; ``L``: row ``x - x0 + 1`` of ``cur``, the last path, see _run; ``p``:
         pixel ``x`` of row ``pr`` of ``c2`` and ``a2``, which hold image row ``y`` there), then their selection
-        (_select_pixel) into
-        ``jbest``, ``disparity``, ``ok``, ``variance``.
+        (_select_pixel) into ``jbest``, ``disparity``, ``ok``, ``variance``.
 
         The sum is sgm_aggregate's in float32 (``a2`` then holds float32 path costs, the tables zeros) or, for
         integer path costs, an integer total converted exactly (``tadd``: ``paths * INVALID_COST`` out of view,
