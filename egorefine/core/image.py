@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from kornia.color import rgb_to_grayscale
 
+from .dispatch import needs_grad, tracing
+
 __all__ = ["to_grey"]
 
 # Elements per piece of a CPU conversion: ATen's grain size (``at::internal::GRAIN_SIZE``), up to which an
@@ -17,9 +19,9 @@ _LUMA = (0.299, 0.587, 0.114)
 def to_grey(image: torch.Tensor) -> torch.Tensor:
     """Grey version of an image batch: colour through kornia's luma weights (``rgb_to_grayscale``), grey passed through.
 
-    On the CPU, without autograd, kornia's three operations run on pieces of rows, each small enough that torch
-    keeps it on the calling thread: an operation over a whole image wakes torch's OpenMP threads, which then spin
-    on the other cores for a while, beside the compiled kernels that usually come next, and slow them
+    On the CPU, without autograd or a tracer, kornia's three operations run on pieces of rows, each small enough
+    that torch keeps it on the calling thread: an operation over a whole image wakes torch's OpenMP threads, which
+    then spin on the other cores for a while, beside the compiled kernels that usually come next, and slow them
     (docs/decisions.md). The operations are kornia's, so the values are too.
 
     Args:
@@ -36,7 +38,7 @@ def to_grey(image: torch.Tensor) -> torch.Tensor:
         return image
     B, _, H, W = image.shape
     rows = _PIECE // max(1, B * W)
-    if (image.device.type != "cpu" or image.requires_grad or rows == 0 or rows >= H
+    if (image.device.type != "cpu" or needs_grad(image) or tracing() or rows == 0 or rows >= H
             or image.dtype not in (torch.float32, torch.float64)):
         return rgb_to_grayscale(image)
     w_r, w_g, w_b = torch.tensor(_LUMA, dtype=image.dtype).unbind()
