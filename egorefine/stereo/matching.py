@@ -37,7 +37,7 @@ from . import _fill_numba, _sad_numba, _sgm_numba, _texture_numba
 from .cost import COSTS, INVALID_COST, _Features, box_mean_same, prefilter_xsobel, strip_volume
 from .fast import _QUANTISATION_VARIANCE, INVALID_VARIANCE, int_scale, match_sad_int
 from .sgm import SGM_PATHS, sgm_aggregate
-from .speckle import clear_invalid_, remove_speckles
+from .speckle import clear_invalid_, remove_speckles, remove_speckles_cleared_
 
 __all__ = ["StereoOutput", "block_matching", "match_stereo", "fill_invalid", "BlockMatching", "INVALID_VARIANCE"]
 
@@ -378,6 +378,11 @@ def _despeckle(out: StereoOutput, speckle_size: int, speckle_range: float) -> St
     ``speckle_size == 0``. Compiled, it clears the removed pixels of ``out``'s maps in place."""
     if speckle_size <= 0:
         return out
+    # compiled: the removed pixels cleared in the pass that writes the mask (fresh outputs of the matcher)
+    valid = remove_speckles_cleared_(out.disparity, out.valid, out.variance, speckle_size, speckle_range,
+                                     INVALID_VARIANCE)
+    if valid is not None:
+        return StereoOutput(out.disparity, valid, out.variance)
     valid = remove_speckles(out.disparity, out.valid, speckle_size, speckle_range)
     if use_compiled(out.disparity, out.variance, valid):  # compiled: no torch pass over the full maps
         clear_invalid_(valid, out.disparity, out.variance, INVALID_VARIANCE)  # (fresh outputs of the matcher)

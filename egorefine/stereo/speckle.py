@@ -96,14 +96,11 @@ if AVAILABLE:
                 _join_rows(d, disp[y - 1], y, max_diff, start, stop, parent, first, end)
 
     @_jit
-    def _region_mask(disp, seams, max_size, max_diff, start, stop, parent, size, first, end, out):
-        """``out`` ``(H, W)``: the pixels of runs in regions of more than ``max_size`` pixels, after joining the runs
-        across the rows ``seams`` (each band's first row) with the row above.
-
-        The region sizes gather at the roots in one pass in run order (every parent, numbered below its child, is
-        settled first), and each run is written as a span of the mask.
-        """
-        H, W = disp.shape
+    def _settle_regions(disp, seams, max_diff, start, stop, parent, size, first, end):
+        """Join the runs across the rows ``seams`` (each band's first row) with the row above, then point every run
+        at its root and gather the region sizes there, in one pass in run order (every parent, numbered below its
+        child, is settled first)."""
+        H = disp.shape[0]
         for y in seams:
             _join_rows(disp[y], disp[y - 1], y, max_diff, start, stop, parent, first, end)
         for y in range(H):
@@ -113,7 +110,15 @@ if AVAILABLE:
                     p = parent[p]
                     parent[i] = p
                     size[p] += size[i]
-        for y in range(H):
+
+    @_jit
+    def _region_mask(max_size, y0, y1, start, stop, parent, size, first, end, out, disparity, variance, fill):
+        """Rows ``[y0, y1)`` of ``out`` ``(H, W)``: the pixels of runs in regions of more than ``max_size`` pixels
+        (the runs settled: each points at its root), each run written as a span. With ``disparity`` and
+        ``variance`` ``(H, W)`` (else ``(0, 0)``), also clears them where ``out`` is False (0 and ``fill``)."""
+        W = out.shape[1]
+        clear = disparity.shape[0] > 0
+        for y in range(y0, y1):
             o = out[y]
             for x in range(W):
                 o[x] = False
@@ -121,7 +126,12 @@ if AVAILABLE:
                 keep = size[parent[i]] > max_size
                 for x in range(start[i], stop[i]):
                     o[x] = keep
-
+            if clear:
+                d, var = disparity[y], variance[y]
+                for x in range(W):
+                    keep = o[x]
+                    d[x] = d[x] if keep else 0.0
+                    var[x] = var[x] if keep else fill
 
     @_jit
     def _clear_invalid(valid, disparity, variance, fill):
@@ -155,9 +165,13 @@ def clear_invalid_(valid: torch.Tensor, disparity: torch.Tensor, variance: torch
         variance.masked_fill_(~valid, fill)
 
 def _remove_speckles_compiled(disp: torch.Tensor, valid: torch.Tensor, max_size: int, max_diff: float,
-                              threads: int | None = None) -> np.ndarray:
+                              threads: int | None = None, clear: tuple[torch.Tensor, float] | None = None
+                              ) -> np.ndarray:
     """The CPU path of :func:`remove_speckles`: ``(B, H, W)`` bool. Bands of rows label their runs on
-    ``threads`` threads (None: ``torch.get_num_threads()``), then each map's seams are joined and its mask written."""
+    ``threads`` threads (None: ``torch.get_num_threads()``), then each map's seams are joined and its region sizes
+    gathered (one thread), and the bands write the mask. ``clear``: ``(variance, fill)``, with ``disp`` contiguous:
+    the removed pixels of ``disp`` and ``variance`` ``(B, 1, H, W)`` are also set to 0 and ``fill``, in place, in
+    the same pass (:func:`clear_invalid_` after it)."""
     d = np.ascontiguousarray(disp[:, 0].numpy())
     v = np.ascontiguousarray(valid[:, 0].numpy())
     b, h, w = d.shape
@@ -166,12 +180,19 @@ def _remove_speckles_compiled(disp: torch.Tensor, valid: torch.Tensor, max_size:
     runs = [tuple(np.empty(h * w, np.int32) for _ in range(4)) + (np.empty(h, np.int64), np.empty(h, np.int64))
             for _ in range(b)]
     bands = _bands(h, threads)
-    _run(threads, lambda job: _label_rows(d[job[0]], v[job[0]], *job[1], diff, *runs[job[0]]),
-         [(i, band) for i in range(b) for band in bands])
+    jobs = [(i, band) for i in range(b) for band in bands]
+    _run(threads, lambda job: _label_rows(d[job[0]], v[job[0]], *job[1], diff, *runs[job[0]]), jobs)
     out = np.empty((b, h, w), np.bool_)
     seams = np.array([y0 for y0, _ in bands[1:]], np.int64)
     for i in range(b):
-        _region_mask(d[i], seams, max_size, diff, *runs[i], out[i])
+        _settle_regions(d[i], seams, diff, *runs[i])
+    if clear is None:
+        maps, fill = (np.empty((0, 0), d.dtype),) * 2, d.dtype.type(0)
+    else:
+        var = clear[0][:, 0].numpy()
+        maps, fill = None, var.dtype.type(clear[1])
+    _run(threads, lambda job: _region_mask(max_size, *job[1], *runs[job[0]], out[job[0]],
+                                           *(maps or (d[job[0]], var[job[0]])), fill), jobs)
     return out
 
 
@@ -270,6 +291,17 @@ def remove_speckles(disparity: torch.Tensor, valid: torch.Tensor, max_size: int 
     >>> int(remove_speckles(d, torch.ones(1, 1, 8, 8, dtype=torch.bool), max_size=10).sum())
     60
     """
+    _check_inputs(disparity, valid, max_size, max_diff)
+    if max_size == 0:
+        return valid
+    disp = disparity.detach()  # the filter reads values only: a gradient elsewhere does not matter
+    if use_compiled(disp, valid, dtype=(torch.float32, torch.float64)):
+        return torch.from_numpy(_remove_speckles_compiled(disp, valid, max_size, max_diff))[:, None]
+    return _remove_speckles_torch(disp, valid, max_size, max_diff)
+
+
+def _check_inputs(disparity: torch.Tensor, valid: torch.Tensor, max_size: int, max_diff: float) -> None:
+    """:func:`remove_speckles`'s checks."""
     dims = check_shape(disparity, ["B", "1", "H", "W"], "disparity")
     check_shape(valid, ["B", "1", "H", "W"], "valid", dims)
     if valid.dtype != torch.bool:
@@ -278,9 +310,32 @@ def remove_speckles(disparity: torch.Tensor, valid: torch.Tensor, max_size: int 
         raise ValueRangeError(f"max_size: expected an int >= 0, got {max_size!r}")
     if not max_diff >= 0:
         raise ValueRangeError(f"max_diff: expected >= 0, got {max_diff}")
-    if max_size == 0:
-        return valid
-    disp = disparity.detach()  # the filter reads values only: a gradient elsewhere does not matter
-    if use_compiled(disp, valid, dtype=(torch.float32, torch.float64)):
-        return torch.from_numpy(_remove_speckles_compiled(disp, valid, max_size, max_diff))[:, None]
-    return _remove_speckles_torch(disp, valid, max_size, max_diff)
+
+
+def remove_speckles_cleared_(disparity: torch.Tensor, valid: torch.Tensor, variance: torch.Tensor, max_size: int,
+                             max_diff: float, fill: float) -> torch.Tensor | None:
+    """:func:`remove_speckles` that also sets ``disparity`` to 0 and ``variance`` to ``fill`` in place where the
+    result is False, in the compiled pass that writes the mask (a matcher's fresh outputs: no pass of its own).
+
+    Args:
+        disparity, variance: ``(B, 1, H, W)`` contiguous float32 CPU maps, written in place.
+        valid, max_size, max_diff: as :func:`remove_speckles`.
+        fill: the variance of a pixel that is not valid.
+
+    Returns:
+        the new validity ``(B, 1, H, W)``; None (nothing done) where the compiled path does not apply (not
+        contiguous float32 CPU maps of one dtype, a gradient needed, ``max_size`` 0): the caller then runs
+        :func:`remove_speckles` and clears the maps itself.
+
+    >>> d, var = torch.full((1, 1, 4, 4), 5.0), torch.ones(1, 1, 4, 4)
+    >>> d[..., 1, 1] = 20.0  # a 1-pixel island
+    >>> valid = remove_speckles_cleared_(d, torch.ones(1, 1, 4, 4, dtype=torch.bool), var, 2, 1.0, 9.0)
+    >>> bool(valid[0, 0, 1, 1]), float(d[0, 0, 1, 1]), float(var[0, 0, 1, 1]), int(valid.sum())
+    (False, 0.0, 9.0, 15)
+    """
+    _check_inputs(disparity, valid, max_size, max_diff)
+    if max_size == 0 or not (disparity.is_contiguous() and variance.is_contiguous()) or variance.shape != \
+            disparity.shape or not use_compiled(disparity, variance, valid, dtype=(torch.float32,)):
+        return None
+    return torch.from_numpy(_remove_speckles_compiled(disparity, valid, max_size, max_diff,
+                                                      clear=(variance, fill)))[:, None]

@@ -104,6 +104,30 @@ def test_compiled_bands_give_the_mask_of_one_band(threads):
     assert np.array_equal(speckle._remove_speckles_compiled(disp, valid, 30, 1.0, threads=threads), whole)
 
 
+@pytest.mark.skipif(not speckle.AVAILABLE, reason="numba not installed")
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_cleared_pass_equals_the_filter_then_the_clearing(threads):
+    # the matcher's path: the mask and the cleared maps in one pass, as remove_speckles then clear_invalid_
+    disp, valid = _random_map(4, b=2, h=41, w=29)
+    variance = torch.rand(disp.shape, generator=torch.Generator().manual_seed(5))
+    expect_valid = remove_speckles(disp, valid, 30, 1.0)
+    expect_d, expect_var = disp.clone(), variance.clone()
+    speckle.clear_invalid_(expect_valid, expect_d, expect_var, 7.0)
+    d, var = disp.clone(), variance.clone()
+    got = torch.from_numpy(speckle._remove_speckles_compiled(d, valid, 30, 1.0, threads=threads,
+                                                             clear=(var, 7.0)))[:, None]
+    assert torch.equal(got, expect_valid)
+    assert torch.equal(d, expect_d) and torch.equal(var, expect_var)
+    assert (~got).any() and (var == 7.0).sum() == (~got).sum()  # (some removed: the clearing was exercised)
+    # the public helper: the same, and None (nothing touched) where its pass does not apply
+    d, var = disp.clone(), variance.clone()
+    assert torch.equal(speckle.remove_speckles_cleared_(d, valid, var, 30, 1.0, 7.0), expect_valid)
+    assert torch.equal(d, expect_d)
+    d64 = disp.double()
+    assert speckle.remove_speckles_cleared_(d64, valid, variance.double(), 30, 1.0, 7.0) is None
+    assert torch.equal(d64, disp.double())
+
+
 def test_matches_opencv_filter_speckles():
     cv2 = pytest.importorskip("cv2")
     disp, valid = _random_map(3, b=1, h=40, w=50)
