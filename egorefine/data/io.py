@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 import torch
 
-from ..core import ShapeError, ValueRangeError, check_choice
+from ..core import ShapeError, ValueRangeError, check_choice, use_compiled
+from . import _png_numba
 
 __all__ = ["PNG_ENCODINGS", "write_png", "read_pfm", "write_pfm", "read_kitti_disparity", "write_kitti_disparity"]
 
@@ -90,10 +91,43 @@ def write_png(path: PathLike, image: np.ndarray, png: str = "fast", palette: np.
                          f"{tuple(image.shape)}")
     h, w = image.shape[:2]
     colour_type = 3 if palette is not None else 0 if image.ndim == 2 else 2  # palette, grey, RGB
-    chunks = [(b"IHDR", struct.pack(">IIBBBBB", w, h, 8 * image.itemsize, colour_type, 0, 0, 0))]
+    _write_rows(path, _png_rows(image, png), w, 8 * image.itemsize, colour_type, png, palette)
+
+
+def _up_filtered(rows: np.ndarray) -> np.ndarray:
+    """``"fast"`` scanlines (filter "none") as ``"small"`` stores them before deflate (filter "up")."""
+    out = np.empty_like(rows)
+    out[:, 0] = 2
+    out[0, 1:] = rows[0, 1:]
+    np.subtract(rows[1:, 1:], rows[:-1, 1:], out=out[1:, 1:])
+    return out
+
+
+def _write_uint16_map(path: PathLike, values: np.ndarray, scale: float, low: float, high: float,
+                      ok: np.ndarray | None, png: str) -> None:
+    """A float32 map ``(H, W)`` written as the 16-bit grey PNG of ``rint(clip(values * scale, low, high))``, 0 where
+    ``ok`` (bool, same shape; None: all) is False; the values' scanlines in one compiled pass where the dispatch
+    rule allows (:mod:`egorefine.data._png_numba`), else numpy's passes: the same bytes."""
+    if use_compiled(torch.from_numpy(values)):
+        rows = _png_numba.scaled_rows(values, scale, low, high, ok)
+        _write_rows(path, rows if png == "fast" else _up_filtered(rows), values.shape[1], 16, 0, png, None)
+        return
+    value = np.multiply(values, scale, dtype=np.float32)
+    np.fmax(value, low, out=value)  # NaN -> low (fmax takes the number)
+    np.minimum(value, high, out=value)
+    value = np.rint(value, out=value).astype(np.uint16)
+    if ok is not None:
+        value *= ok
+    write_png(path, value, png)
+
+
+def _write_rows(path: PathLike, rows: np.ndarray, w: int, bit_depth: int, colour_type: int, png: str,
+                palette: np.ndarray | None) -> None:
+    """The PNG file of the scanlines ``rows`` (:func:`_png_rows`'s, for ``png``)."""
+    h = rows.shape[0]
+    chunks = [(b"IHDR", struct.pack(">IIBBBBB", w, h, bit_depth, colour_type, 0, 0, 0))]
     if palette is not None:
         chunks.append((b"PLTE", np.ascontiguousarray(palette).tobytes()))
-    rows = _png_rows(image, png)
     if png == "fast":
         pixels = zlib.compress(rows, 0)
     else:
@@ -282,10 +316,6 @@ def write_kitti_disparity(
         if v.shape != d.shape:
             raise ShapeError(f"valid: expected {d.shape} pixels, got shape {tuple(v.shape)}")
         ok &= v.astype(bool, copy=False)
-    value = np.multiply(d, 256.0, dtype=np.float32)
-    np.fmax(value, 1.0, out=value)  # NaN -> 1 too (fmax takes the number); invalid pixels are zeroed below
-    np.minimum(value, 65535.0, out=value)
-    value = np.rint(value, out=value).astype(np.uint16)
-    value *= ok
-    write_png(path, value, png)
+    # (NaN -> 1 too; invalid pixels are written as 0)
+    _write_uint16_map(path, np.ascontiguousarray(d, np.float32), 256.0, 1.0, 65535.0, ok, png)
 

@@ -27,7 +27,15 @@ import numpy as np
 import torch
 
 from ..core import ShapeError, ValueRangeError, check_choice
-from .io import PNG_ENCODINGS, read_kitti_disparity, read_pfm, write_kitti_disparity, write_pfm, write_png
+from .io import (
+    PNG_ENCODINGS,
+    _write_uint16_map,
+    read_kitti_disparity,
+    read_pfm,
+    write_kitti_disparity,
+    write_pfm,
+    write_png,
+)
 
 __all__ = [
     "DISPARITY_FORMATS",
@@ -170,10 +178,8 @@ def write_confidence(
     c = _plane(confidence, "confidence")
     with atomic_path(path) as tmp:
         if fmt == "png16":
-            value = np.multiply(c, 65535.0, dtype=np.float32)
-            np.fmax(value, 0.0, out=value)  # NaN -> 0 (fmax takes the number)
-            np.minimum(value, 65535.0, out=value)
-            write_png(tmp, np.rint(value, out=value).astype(np.uint16), png)
+            # (NaN -> 0)
+            _write_uint16_map(tmp, np.ascontiguousarray(c, np.float32), 65535.0, 0.0, 65535.0, None, png)
         else:
             c = np.clip(np.nan_to_num(c.astype(np.float32)), 0.0, 1.0)
             _write_float(tmp, c, fmt)

@@ -123,3 +123,34 @@ def test_kitti_png_errors(tmp_path) -> None:
         write_kitti_disparity(tmp_path / "x.png", torch.zeros(3, 4, 4))
     with pytest.raises(ShapeError, match="valid"):
         write_kitti_disparity(tmp_path / "x.png", torch.ones(1, 4, 4), torch.ones(3, 3, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("png", PNG_ENCODINGS)
+def test_uint16_maps_compiled_and_numpy_paths_write_the_same_bytes(tmp_path, png: str, monkeypatch) -> None:
+    """The disparity and confidence files: the compiled scanlines (egorefine.data._png_numba) against numpy's passes,
+    file for file, on values that test each step: NaN, infinities, negatives, the clip bounds, halves (rint's ties
+    to even) and invalid pixels."""
+    from egorefine.core import dispatch
+    from egorefine.data import _png_numba
+    from egorefine.data.results import write_confidence
+
+    if not _png_numba.AVAILABLE:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(3)
+    d = (rng.random((37, 53)) * 300).astype(np.float32)
+    special = [np.nan, np.inf, -np.inf, -1.0, 0.0, 1e-4, 0.5 / 256, 1.5 / 256, 2.5 / 256, 255.99, 256.0, 1e6]
+    d[0, : len(special)] = special
+    valid = rng.random(d.shape) > 0.2
+    valid[0, : len(special)] = True
+    c = np.concatenate([d[:, :20] / 300, np.full((37, 5), 0.5 / 65535, np.float32)], axis=1)
+    c[1, :4] = [np.nan, -0.5, 1.5, 2.5 / 65535]
+    files = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(dispatch, "ENABLED", compiled)
+        write_kitti_disparity(tmp_path / f"d{compiled}.png", d, valid, png=png)
+        files[compiled] = [(tmp_path / f"d{compiled}.png").read_bytes(),
+                           write_confidence(tmp_path / f"c{compiled}", c, png=png).read_bytes()]
+    assert files[True] == files[False]
+    back = cv2.imread(str(tmp_path / "dTrue.png"), cv2.IMREAD_UNCHANGED)
+    assert back[0, : len(special)].tolist() == [0, 0, 0, 0, 0, 1, 1, 2, 2, 65533, 65535, 65535]
+    assert (back[~valid] == 0).all() and (back[valid & (d > 1) & np.isfinite(d)] > 0).all()
