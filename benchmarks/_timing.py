@@ -39,6 +39,7 @@ STAGES: list[tuple[object, str, str]] = [
     (_refiner_module, "replenish", "feature top-up"),
     (_refiner_module, "match_stereo", "box matcher"),
     (_matching_module, "remove_speckles", "speckle filter"),
+    (_matching_module, "remove_speckles_cleared_", "speckle filter"),  # (the compiled path: the maps cleared too)
     (_refiner_module, "_fill_matcher", "census+SGM fill"),
     (_refiner_module, "fill_invalid", "census+SGM fill"),
     (EgoMotionRefiner, "_correct", "correction"),

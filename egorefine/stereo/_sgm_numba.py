@@ -46,6 +46,7 @@ import torch
 from ..core._jit import AVAILABLE, Workers, release_scratch, scratch, thread_count
 from ..core._jit import bands as _bands
 from ..core._jit import jit as _jit
+from . import _texture_numba
 from .sgm import sgm_stripes
 
 __all__ = ["AVAILABLE", "census_sgm_select", "release_workspace"]
@@ -646,7 +647,8 @@ def release_workspace() -> None:
 
 def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity: int, min_disparity: int,
                       block_size: int, census_window: int, p1: float, p2: float, paths: int, opts: dict,
-                      threads: int | None = None, return_volume: bool = False
+                      threads: int | None = None, return_volume: bool = False,
+                      texture: tuple[torch.Tensor, int, float, float, float] | None = None
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Census cost, box sum, SGM aggregation and winner selection of float32 CPU grey pairs.
 
@@ -665,10 +667,13 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         threads: worker threads (None: ``torch.get_num_threads()``).
         return_volume: also return the aggregated volume ``(B, D, H, W)`` (reversed disparity order,
             as ``sgm_aggregate`` returns it), for tests.
+        texture: ``(grey_l, block_size, prefilter_cap, texture_threshold, invalid_variance)``: also the texture
+            check and the clearing of :func:`egorefine.stereo._texture_numba.mask_untextured` (the same maps), with
+            3 paths in each stripe's job while its rows are in cache; None: not done.
 
     Returns:
         ``(disparity, valid, variance, volume or None)``, the first three ``(B, 1, H, W)`` as ``_select``
-        returns them (before the texture check and the zeroing of invalid pixels).
+        returns them (before the texture check and the zeroing of invalid pixels, unless ``texture``).
     """
     b, _, h, w = grey_l.shape
     num = max_disparity - min_disparity
@@ -704,6 +709,7 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
     col_bands = _bands(w, threads) if paths == 4 else [(0, w)]
     stripes = sgm_stripes(h)
     volumes = []
+    grey_t = None if texture is None else texture[0].detach().contiguous().numpy()
 
     def item(i: int, run) -> None:  # run(fn, items): the phases are separated by these barriers
         # a volume returned to the caller stays its own (each batch item's is kept until the end)
@@ -713,10 +719,20 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         band = BAND_ROWS
         if paths == 3:  # one pass down each stripe: its census, costs, paths and winners in row buffers, no volume
             padded = [_edge_padded(img[i, 0], census_window // 2) for img in (left, right)]
-            run(lambda st: _stripe_pass(*padded, census_window, planes, block_size // 2, st[0], st[1], st[2], band,
-                                        num, f1, f2, path_pad, *tables, np.empty(0, cost_dtype),
-                                        np.empty(0, path_dtype), colsum_like, select, vol, jbest, disparity[i],
-                                        valid[i], variance[i], rmins[0]), stripes)
+
+            def stripe(st: tuple[int, int, int]) -> None:
+                _stripe_pass(*padded, census_window, planes, block_size // 2, st[0], st[1], st[2], band, num, f1, f2,
+                             path_pad, *tables, np.empty(0, cost_dtype), np.empty(0, path_dtype), colsum_like,
+                             select, vol, jbest, disparity[i], valid[i], variance[i], rmins[0])
+                # the stripe's rows checked while in cache: the right view's winners are its own rows'
+                if opts["lr_check"]:
+                    _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[3], opts["lr_threshold"], st[0],
+                                   st[1])
+                if texture is not None:
+                    _texture_numba.mask_rows(grey_t[i, 0], *texture[1:4], st[0], st[1], disparity[i], valid[i],
+                                             variance[i], texture[4])
+
+            run(stripe, stripes)
         else:
             census = np.empty((2, planes, h, w), dtype=np.uint8)
             run(lambda k: _census_of((left, right)[k][i, 0], census_window, census[k]), (0, 1))
@@ -730,9 +746,13 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
                                            variance[i], rmins[k]), range(len(col_bands)))
         if return_volume:
             volumes.append(torch.from_numpy(vol.reshape(h, w, num)).permute(2, 0, 1))
-        if opts["lr_check"]:
+        if opts["lr_check"] and paths != 3:
             run(lambda rows: _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[3], opts["lr_threshold"],
                                             rows[0], rows[1]), row_bands)
+        if texture is not None and paths != 3:
+            _texture_numba.mask_untextured(tuple(torch.from_numpy(a[i : i + 1, None]) for a in (disparity, valid,
+                                                                                                 variance)),
+                                           texture[0][i : i + 1], *texture[1:], threads=threads)
 
     workers = Workers(threads)
     for i in range(b):

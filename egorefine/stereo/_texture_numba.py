@@ -21,7 +21,7 @@ from ..core._jit import AVAILABLE, Workers, thread_count
 from ..core._jit import jit as _jit
 from ..core._jit import split as _split
 
-__all__ = ["AVAILABLE", "mask_untextured"]
+__all__ = ["AVAILABLE", "mask_rows", "mask_untextured"]
 
 
 if AVAILABLE:
@@ -105,6 +105,14 @@ if AVAILABLE:
                 ok[x] = keep
                 d[x] = d[x] if keep else np.float32(0.0)
                 var[x] = var[x] if keep else invalid
+
+
+def mask_rows(grey: np.ndarray, block_size: int, cap: float, threshold: float, y0: int, y1: int,
+              disparity: np.ndarray, valid: np.ndarray, variance: np.ndarray, invalid: float) -> None:
+    """Rows ``[y0, y1)`` of one map's :func:`mask_untextured`, in place (``grey`` and the maps ``(H, W)`` numpy):
+    for a caller that has those rows in cache (the 3-path census + SGM, stripe by stripe)."""
+    _mask_rows(grey, int(block_size), np.float32(cap), np.float32(threshold), y0, y1, disparity, valid, variance,
+               np.float32(invalid))
 
 
 def mask_untextured(out: tuple[torch.Tensor, torch.Tensor, torch.Tensor], grey: torch.Tensor, block_size: int,

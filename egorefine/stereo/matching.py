@@ -448,12 +448,11 @@ def _match(left: torch.Tensor, right: torch.Tensor, max_disparity: int, min_disp
     if aggregation == "sgm":
         p1, p2 = _sgm_penalties(cost, census_window, sgm_p1, sgm_p2, opts["scale"])
     if aggregation == "sgm" and _use_numba_sgm(grey_l, grey_r, cost, num, differentiable):
-        # CPU inference: census, SGM and selection compiled (the same float32 results as below), then the texture
-        # check and the masking in one compiled pass (no torch pass over the full maps)
-        return _mask_untextured_compiled(
-            _sgm_numba.census_sgm_select(grey_l, grey_r, max_disparity, min_disparity, block_size, census_window,
-                                         p1, p2, sgm_paths, opts)[:3],
-            grey_l, block_size, prefilter_cap, texture_threshold)
+        # CPU inference: census, SGM, selection, the texture check and the masking compiled (the same float32
+        # results as below; with 3 paths the checks run in each stripe's job), no torch pass over the full maps
+        return StereoOutput(*_sgm_numba.census_sgm_select(
+            grey_l, grey_r, max_disparity, min_disparity, block_size, census_window, p1, p2, sgm_paths, opts,
+            texture=(grey_l, block_size, prefilter_cap, texture_threshold, INVALID_VARIANCE))[:3])
     # texture check: mean clipped |x-Sobel| over the block (a constant image scores 0)
     texture = box_mean_same(prefilter_xsobel(grey_l.detach(), prefilter_cap).abs(), block_size)
     textured = texture >= texture_threshold

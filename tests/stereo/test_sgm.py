@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from egorefine.core import ValueRangeError, _jit
+from egorefine.core import ValueRangeError, _jit, dispatch
 from egorefine.stereo import _sgm_numba, match_stereo, sgm_aggregate
 from egorefine.stereo.band import match_sgm_band
 from egorefine.stereo.sgm import sgm_stripes
@@ -150,6 +150,26 @@ def test_numba_three_paths_equal_torch_path_across_stripes(p1, p2, threads):
     assert torch.equal(vol, ref_vol)
     assert torch.equal(d, ref_d) and torch.equal(v, ref_v) and torch.equal(var, ref_var)
     assert 0.3 < v.float().mean() < 1.0
+
+
+@needs_numba
+@pytest.mark.parametrize(("paths", "threads"), [(3, 1), (3, 2), (4, 2)])
+def test_match_stereo_compiled_equals_torch_path_with_its_checks(paths, threads, monkeypatch):
+    """match_stereo's whole compiled census + SGM path (with 3 paths the left-right and texture checks run in each
+    stripe's job) against the torch path: equal maps, on a pair of four stripes with a flat band the texture check
+    rejects and a speckle filter."""
+    left, right = _random_pair(1, 370, 44, seed=7)
+    left[..., 150:190, :] = 0.5  # flat rows: texture 0 (their matches are not valid on either path)
+    right[..., 150:190, :] = 0.5
+    kw = {"cost": "census", "aggregation": "sgm", "block_size": 5, "sgm_paths": paths, "speckle_size": 20,
+          "speckle_range": 1.0}
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    compiled = match_stereo(left, right, 12, **kw)
+    monkeypatch.setattr(dispatch, "ENABLED", False)
+    reference = match_stereo(left, right, 12, **kw)
+    for a, b in zip(compiled, reference, strict=True):
+        assert torch.equal(a, b)
+    assert not compiled.valid[..., 155:185, :].any() and 0.3 < compiled.valid.float().mean() < 1.0
 
 
 def test_sgm_paths_choices():
