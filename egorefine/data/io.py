@@ -38,14 +38,9 @@ def _png_rows(image: np.ndarray, png: str) -> np.ndarray:
     h = image.shape[0]
     raw = image.astype(image.dtype.newbyteorder(">"), copy=False).reshape(h, -1).view(np.uint8)
     rows = np.empty((h, 1 + raw.shape[1]), np.uint8)
-    if png == "fast":
-        rows[:, 0] = 0  # filter type 0: none
-        rows[:, 1:] = raw
-    else:
-        rows[:, 0] = 2  # filter type 2: up (the first row's "above" is zeros: the row itself)
-        rows[0, 1:] = raw[0]
-        np.subtract(raw[1:], raw[:-1], out=rows[1:, 1:])  # modulo 256, as PNG's filters are
-    return rows
+    rows[:, 0] = 0  # filter type 0: none
+    rows[:, 1:] = raw
+    return rows if png == "fast" else _up_filtered(rows)
 
 
 def write_png(path: PathLike, image: np.ndarray, png: str = "fast", palette: np.ndarray | None = None) -> None:
@@ -97,9 +92,9 @@ def write_png(path: PathLike, image: np.ndarray, png: str = "fast", palette: np.
 def _up_filtered(rows: np.ndarray) -> np.ndarray:
     """``"fast"`` scanlines (filter "none") as ``"small"`` stores them before deflate (filter "up")."""
     out = np.empty_like(rows)
-    out[:, 0] = 2
+    out[:, 0] = 2  # filter type 2: up (the first row's "above" is zeros: the row itself)
     out[0, 1:] = rows[0, 1:]
-    np.subtract(rows[1:, 1:], rows[:-1, 1:], out=out[1:, 1:])
+    np.subtract(rows[1:, 1:], rows[:-1, 1:], out=out[1:, 1:])  # modulo 256, as PNG's filters are
     return out
 
 

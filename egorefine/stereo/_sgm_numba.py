@@ -27,8 +27,8 @@ ones with each row's winner selection as soon as its sums are complete (the righ
 is gathered per band on the way); per row band, the left-right check. Diagonal paths (8 paths)
 cross column bands, so their vertical phase is one band. With 3 paths, per stripe of rows
 (sgm.sgm_stripes), one pass down it: the census of its rows, then costs, paths and winners row by
-row; then the left-right check. Compiled with ``cache=True``: the first
-call on a machine compiles for several seconds.
+row; then, in the same job, the stripe's left-right check (and the texture check, when asked).
+Compiled with ``cache=True``: the first call on a machine compiles for several seconds.
 
 The two volumes of 4 and 8 paths (``H W D`` int16 costs and the path sums, int16 or float32) are kept per calling
 thread and reused by the next call that fits in them, as OpenCV's SGBM keeps its buffer: faulting in
@@ -749,13 +749,12 @@ def census_sgm_select(grey_l: torch.Tensor, grey_r: torch.Tensor, max_disparity:
         if opts["lr_check"] and paths != 3:
             run(lambda rows: _lr_check_rows(rmins, jbest, valid[i], max_disparity, select[3], opts["lr_threshold"],
                                             rows[0], rows[1]), row_bands)
-        if texture is not None and paths != 3:
-            _texture_numba.mask_untextured(tuple(torch.from_numpy(a[i : i + 1, None]) for a in (disparity, valid,
-                                                                                                 variance)),
-                                           texture[0][i : i + 1], *texture[1:], threads=threads)
 
     workers = Workers(threads)
     for i in range(b):
         item(i, workers.map)
     as_t = lambda a: torch.from_numpy(a).unsqueeze(1)  # noqa: E731
-    return as_t(disparity), as_t(valid), as_t(variance), torch.stack(volumes) if return_volume else None
+    out = as_t(disparity), as_t(valid), as_t(variance)
+    if texture is not None and paths != 3:  # (3 paths: done in the stripes' jobs)
+        _texture_numba.mask_untextured(out, *texture, threads=threads)
+    return *out, torch.stack(volumes) if return_volume else None

@@ -186,13 +186,15 @@ def _remove_speckles_compiled(disp: torch.Tensor, valid: torch.Tensor, max_size:
     seams = np.array([y0 for y0, _ in bands[1:]], np.int64)
     for i in range(b):
         _settle_regions(d[i], seams, diff, *runs[i])
+    # the maps cleared with the mask: (disparity, variance) per item, or empty ones (nothing cleared)
     if clear is None:
-        maps, fill = (np.empty((0, 0), d.dtype),) * 2, d.dtype.type(0)
+        none = np.empty((0, 0), d.dtype)
+        cleared, fill = [(none, none)] * b, d.dtype.type(0)
     else:
         var = clear[0][:, 0].numpy()
-        maps, fill = None, var.dtype.type(clear[1])
-    _run(threads, lambda job: _region_mask(max_size, *job[1], *runs[job[0]], out[job[0]],
-                                           *(maps or (d[job[0]], var[job[0]])), fill), jobs)
+        cleared, fill = [(d[i], var[i]) for i in range(b)], var.dtype.type(clear[1])
+    _run(threads, lambda job: _region_mask(max_size, *job[1], *runs[job[0]], out[job[0]], *cleared[job[0]], fill),
+         jobs)
     return out
 
 
